@@ -1,0 +1,134 @@
+import math
+
+import pytest
+import torch
+from torch import nn
+from torch.distributions import Normal, kl_divergence as torch_kl
+
+from lerobot_pacdp.bayesian_layers import (
+    BayesianConv1d,
+    BayesianConvTranspose1d,
+    BayesianLinear,
+    bayesianize,
+    kl_divergence,
+    make_bayesian,
+    mean_posterior_sigma,
+    sampled_weights,
+    softplus_inverse,
+)
+
+PRIOR_RHO = -4.5
+
+
+def _layers() -> list[nn.Module]:
+    torch.manual_seed(0)
+    return [nn.Linear(12, 7), nn.Conv1d(6, 5, 3, padding=1), nn.ConvTranspose1d(4, 4, 4, 2, 1)]
+
+
+def _perturb(layer: nn.Module) -> None:
+    with torch.no_grad():
+        for name, param in layer.named_parameters():
+            param.add_(0.05 * torch.randn_like(param) if not name.endswith("_rho") else torch.rand_like(param))
+
+
+@pytest.mark.parametrize("layer", _layers(), ids=lambda m: type(m).__name__)
+def test_conversion_keeps_shapes_and_initialises_posterior_to_prior(layer):
+    shapes = {n: p.shape for n, p in layer.named_parameters()}
+    make_bayesian(layer, PRIOR_RHO)
+    assert isinstance(layer, (BayesianLinear, BayesianConv1d, BayesianConvTranspose1d))
+    for name, shape in shapes.items():
+        assert getattr(layer, name).shape == shape
+        assert torch.equal(getattr(layer, name), getattr(layer, f"{name}_prior_mu"))
+        assert torch.all(getattr(layer, f"{name}_rho") == PRIOR_RHO)
+    assert torch.all(layer.bias_prior_mu == 0)
+    assert kl_divergence(layer).item() == 0.0
+
+
+def test_prior_mean_is_truncated_normal_with_fan_in_scale():
+    torch.manual_seed(1)
+    layer = make_bayesian(nn.Conv1d(64, 256, 5), PRIOR_RHO)
+    std = 1 / math.sqrt(64 * 5)
+    w = layer.weight_prior_mu
+    assert w.abs().max() <= 2 * std + 1e-7
+    # A N(0, s^2) truncated at +-2s has std ~0.880 s.
+    assert w.std().item() == pytest.approx(0.880 * std, rel=0.03)
+    assert w.mean().item() == pytest.approx(0.0, abs=0.02 * std)
+
+
+@pytest.mark.parametrize("layer", _layers(), ids=lambda m: type(m).__name__)
+def test_kl_matches_torch_distributions(layer):
+    make_bayesian(layer, PRIOR_RHO)
+    _perturb(layer)
+    expected = 0.0
+    prior_sigma = nn.functional.softplus(torch.tensor(PRIOR_RHO, dtype=torch.float64))
+    for name in ("weight", "bias"):
+        q = Normal(getattr(layer, name).double(), layer.posterior_sigma(name).double())
+        p = Normal(getattr(layer, f"{name}_prior_mu").double(), prior_sigma)
+        expected += torch_kl(q, p).sum().item()
+    assert kl_divergence(layer).item() == pytest.approx(expected, rel=1e-5)
+    assert kl_divergence(layer).dtype == torch.float64
+
+
+def test_sampled_weights_have_posterior_mean_and_std():
+    torch.manual_seed(2)
+    layer = make_bayesian(nn.Linear(50, 40), PRIOR_RHO)
+    with torch.no_grad():
+        layer.weight_rho.fill_(softplus_inverse(0.2))
+    samples = []
+    for _ in range(400):
+        with sampled_weights(layer):
+            samples.append(layer.current("weight").detach().clone())
+    stacked = torch.stack(samples)
+    assert torch.allclose(stacked.mean(0), layer.weight, atol=0.2 * 4 / math.sqrt(400))
+    assert stacked.std(0).mean().item() == pytest.approx(0.2, rel=0.02)
+    # Outside the block the layer is back to its posterior mean.
+    assert layer.current("weight") is layer.weight
+
+
+def test_one_sample_is_shared_by_every_call_inside_the_block():
+    layer = make_bayesian(nn.Linear(3, 2), PRIOR_RHO)
+    x = torch.randn(5, 3)
+    with sampled_weights(layer):
+        first, second = layer(x), layer(x)
+    with sampled_weights(layer):
+        third = layer(x)
+    assert torch.equal(first, second)
+    assert not torch.equal(first, third)
+    assert torch.equal(layer(x), nn.functional.linear(x, layer.weight, layer.bias))
+
+
+def test_gradients_reach_mu_and_rho_through_sample_and_kl():
+    torch.manual_seed(3)
+    layer = make_bayesian(nn.Conv1d(3, 4, 3, padding=1), PRIOR_RHO)
+    with sampled_weights(layer):
+        out = layer(torch.randn(2, 3, 8)).square().mean()
+    (out + kl_divergence(layer)).backward()
+    for name in ("weight", "bias", "weight_rho", "bias_rho"):
+        grad = getattr(layer, name).grad
+        assert grad is not None and grad.abs().sum() > 0, name
+
+
+def test_conv_transpose_output_matches_deterministic_layer_at_the_mean():
+    torch.manual_seed(4)
+    reference = nn.ConvTranspose1d(4, 4, 4, 2, 1)
+    bayesian = make_bayesian(nn.ConvTranspose1d(4, 4, 4, 2, 1), PRIOR_RHO)
+    reference.load_state_dict({"weight": bayesian.weight, "bias": bayesian.bias})
+    x = torch.randn(2, 4, 8)
+    assert torch.allclose(bayesian(x), reference(x))
+
+
+def test_bayesianize_respects_keep_deterministic_and_rejects_unknown_layers():
+    net = nn.Sequential(nn.Linear(3, 3), nn.Sequential(nn.Mish(), nn.Linear(3, 3)), nn.GroupNorm(1, 3))
+    converted = bayesianize(net, PRIOR_RHO, keep_deterministic=lambda name: name == "1.1")
+    assert converted == ["0"]
+    assert type(net[1][1]) is nn.Linear and type(net[2]) is nn.GroupNorm
+    with pytest.raises(TypeError, match="No Bayesian version of GroupNorm"):
+        make_bayesian(nn.GroupNorm(1, 3), PRIOR_RHO)
+    with pytest.raises(ValueError, match="no Bayesian layers"):
+        kl_divergence(nn.Linear(2, 2))
+
+
+def test_mean_posterior_sigma_is_softplus_of_rho():
+    layer = make_bayesian(nn.Linear(4, 4), PRIOR_RHO)
+    assert mean_posterior_sigma(layer) == pytest.approx(math.log1p(math.exp(PRIOR_RHO)), rel=1e-6)
+    assert softplus_inverse(math.log1p(math.exp(PRIOR_RHO))) == pytest.approx(PRIOR_RHO)
