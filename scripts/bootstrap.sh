@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# Create or update the project virtualenv (.venv) with this package, its pinned deps and test deps.
+# Idempotent: reinstalls only when pyproject.toml changed since the last successful install.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+python_bin="${PACDP_PYTHON:-python3}"  # resolves to $(cat .python-version) under pyenv
+if ! "$python_bin" -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; then
+  echo "error: Python >= 3.12 is required (lerobot 0.6.1); '$python_bin' is $("$python_bin" --version 2>&1)." >&2
+  echo "fix: install Python $(cat .python-version) (e.g. 'pyenv install $(cat .python-version)') or set PACDP_PYTHON." >&2
+  exit 2
+fi
+
+if [ ! -x .venv/bin/python ]; then
+  echo "[bootstrap] creating .venv with $("$python_bin" --version)"
+  "$python_bin" -m venv .venv
+fi
+
+stamp=.venv/.pacdp-install-stamp
+want=$(sha256sum pyproject.toml | cut -d' ' -f1)
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+  echo "[bootstrap] installing lerobot_policy_pacdp and its dependencies into .venv (first time: several minutes)"
+  .venv/bin/python -m pip install -q --upgrade pip
+  .venv/bin/python -m pip install -q -e ".[test]"
+  echo "$want" > "$stamp"
+else
+  echo "[bootstrap] .venv is up to date"
+fi
