@@ -78,3 +78,48 @@ def make_tiny_dataset(root: Path, episode_lengths: list[int], seed: int = 0, rep
         dataset.save_episode()
     dataset.finalize()
     return LeRobotDataset(repo_id, root=root)
+
+
+class LocalHub:
+    """Stands in for `huggingface_hub.HfApi`: uploads land in `root/<repo_id>/` instead of the network.
+
+    Only the two calls LeRobot's push code makes are implemented, with the same arguments, so the
+    real `push_model_to_hub` / `push_to_hub` code paths run unchanged.
+    """
+
+    root: Path
+
+    def __init__(self, token=None, **_):
+        self.token = token
+
+    def create_repo(self, repo_id: str, private=None, exist_ok=False, **_):
+        from types import SimpleNamespace
+
+        (self.root / repo_id).mkdir(parents=True, exist_ok=True)
+        return SimpleNamespace(repo_id=repo_id)
+
+    def upload_folder(self, repo_id, folder_path, allow_patterns=None, ignore_patterns=None, **_):
+        import fnmatch
+        import shutil
+        from types import SimpleNamespace
+
+        for path in Path(folder_path).rglob("*"):
+            name = path.name
+            if path.is_dir() or (allow_patterns and not any(fnmatch.fnmatch(name, p) for p in allow_patterns)):
+                continue
+            if ignore_patterns and any(fnmatch.fnmatch(name, p) for p in ignore_patterns):
+                continue
+            target = self.root / repo_id / path.relative_to(folder_path)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(path, target)
+        return SimpleNamespace(repo_url=SimpleNamespace(url=f"file://{self.root / repo_id}"))
+
+
+def install_into_hf_cache(repo_dir: Path, repo_id: str, cache_dir: Path, commit: str = "0" * 40) -> None:
+    """Lay a model repo's files out as huggingface_hub's cache does, so offline hub loading finds them."""
+    import shutil
+
+    base = cache_dir / f"models--{repo_id.replace('/', '--')}"
+    shutil.copytree(repo_dir, base / "snapshots" / commit)
+    (base / "refs").mkdir(parents=True)
+    (base / "refs" / "main").write_text(commit)
