@@ -45,6 +45,7 @@ class BayesianLayer(nn.Module):
     weight_prior_mu: Tensor
     prior_rho: Tensor
     _sampled: dict[str, Tensor] | None
+    _sampled_sigma: dict[str, Tensor] | None
 
     def _init_bayesian(self, prior_rho: float, fan_in: int) -> None:
         """Turn the deterministic parameters into (mu, rho) and record the prior (Q = P at init)."""
@@ -59,25 +60,34 @@ class BayesianLayer(nn.Module):
                 mu.copy_(prior_mu)
             self.register_buffer(f"{name}_prior_mu", prior_mu)
             self.register_parameter(f"{name}_rho", nn.Parameter(torch.full_like(mu, float(prior_rho))))
-        self._sampled = None
+        self.clear_sample()
 
     def _bayesian_param_names(self) -> tuple[str, ...]:
         return tuple(name for name in _PARAM_NAMES if getattr(self, name, None) is not None)
 
     def posterior_sigma(self, name: str = "weight") -> Tensor:
+        """sigma = softplus(rho) (Eq. 7); inside a sampling block, the value computed for the sample."""
+        if self._sampled_sigma is not None:
+            return self._sampled_sigma[name]
         return F.softplus(getattr(self, f"{name}_rho"))
 
     def draw_sample(self, generator: torch.Generator | None = None) -> None:
-        """Draw w = mu + softplus(rho) * xi, xi ~ N(0, I) (Eq. 6), for every Bayesian parameter."""
-        sample = {}
+        """Draw w = mu + softplus(rho) * xi, xi ~ N(0, I) (Eq. 6), for every Bayesian parameter.
+
+        sigma is kept until `clear_sample` so the KL of the same step reuses it (one softplus pass).
+        """
+        sample, sigmas = {}, {}
         for name in self._bayesian_param_names():
             mu = getattr(self, name)
+            sigma = F.softplus(getattr(self, f"{name}_rho"))
             xi = torch.randn(mu.shape, dtype=mu.dtype, device=mu.device, generator=generator)
-            sample[name] = mu + self.posterior_sigma(name) * xi
-        self._sampled = sample
+            sample[name] = torch.addcmul(mu, sigma, xi)
+            sigmas[name] = sigma
+        self._sampled, self._sampled_sigma = sample, sigmas
 
     def clear_sample(self) -> None:
         self._sampled = None
+        self._sampled_sigma = None
 
     def current(self, name: str) -> Tensor | None:
         """The tensor used in the forward pass: the drawn sample if any, else the posterior mean."""
@@ -88,16 +98,20 @@ class BayesianLayer(nn.Module):
     def kl_divergence(self) -> Tensor:
         """Closed-form KL(Q||P) between factorized Gaussians, summed over all elements (Eq. 12 terms).
 
-        KL = sum 0.5 * (log(sp^2/sq^2) + (sq^2 + (mq - mp)^2) / sp^2 - 1), accumulated in float64.
+        KL = sum 0.5 * (log(sp^2/sq^2) + (sq^2 + (mq - mp)^2) / sp^2 - 1), summed in float64 and
+        written as (log sp - log sq) + ((sq^2 + (mq - mp)^2) / (2 sp^2) - 1/2), which is exactly 0
+        when Q = P.
         """
-        prior_var = F.softplus(self.prior_rho).square()
+        prior_sigma = F.softplus(self.prior_rho)
+        log_prior_sigma, two_prior_var = torch.log(prior_sigma), 2 * prior_sigma.square()
         total = torch.zeros((), dtype=torch.float64, device=self.prior_rho.device)
         for name in self._bayesian_param_names():
-            mu_q = getattr(self, name)
-            var_q = self.posterior_sigma(name).square()
-            mu_p = getattr(self, f"{name}_prior_mu")
-            elementwise = torch.log(prior_var / var_q) + (var_q + (mu_q - mu_p).square()) / prior_var - 1.0
-            total = total + 0.5 * elementwise.sum(dtype=torch.float64)
+            sigma_q = self.posterior_sigma(name)
+            mean_gap = getattr(self, name) - getattr(self, f"{name}_prior_mu")
+            elementwise = (log_prior_sigma - torch.log(sigma_q)) + (
+                (sigma_q.square() + mean_gap.square()) / two_prior_var - 0.5
+            )
+            total = total + elementwise.sum(dtype=torch.float64)
         return total
 
     def extra_repr(self) -> str:
@@ -188,11 +202,8 @@ def rho_parameters(network: nn.Module) -> list[nn.Parameter]:
 @torch.no_grad()
 def mean_posterior_sigma(network: nn.Module) -> float:
     """Element-weighted mean posterior std over all Bayesian parameters (a training-health signal)."""
-    total, count = 0.0, 0
-    for rho in rho_parameters(network):
-        total += F.softplus(rho).sum().item()
-        count += rho.numel()
-    return total / max(count, 1)
+    sigmas = [layer.posterior_sigma(name) for layer in bayesian_layers(network) for name in layer._bayesian_param_names()]
+    return sum(s.sum().item() for s in sigmas) / max(sum(s.numel() for s in sigmas), 1)
 
 
 @contextlib.contextmanager

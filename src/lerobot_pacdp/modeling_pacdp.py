@@ -84,17 +84,18 @@ class PacdpPolicy(DiffusionPolicy):
                 "PAC-DP needs N (`num_train_samples`) to train, and no dataset was given to derive it. "
                 "Pass --policy.num_train_samples=<number of training frames>."
             )
-        with sampled_weights(self.unet):
+        with sampled_weights(self.unet):  # one weight sample for this forward pass
             risk, _ = super().forward(batch)
-        with torch.set_grad_enabled(self.config.kl_weight > 0):
-            kl = kl_divergence(self.unet)
+            with torch.set_grad_enabled(self.config.kl_weight > 0):
+                kl = kl_divergence(self.unet)
+            sigma_mean = mean_posterior_sigma(self.unet)
         objective = pac_bayes_objective(risk, kl, num_samples, self.config.delta, self.config.kl_weight)
         return objective.total, {
             "denoise_loss": risk.item(),
             "kl": kl.item(),
             "bound_sqrt_term": objective.sqrt_term.item(),
             "bound_linear_term": objective.linear_term.item(),
-            "sigma_mean": mean_posterior_sigma(self.unet),
+            "sigma_mean": sigma_mean,
         }
 
     def inference_weights(self, generator: torch.Generator | None = None) -> contextlib.AbstractContextManager:

@@ -7,6 +7,7 @@ and gym_pusht's reward / success recomputed from the block pose.
 """
 
 import argparse
+import logging
 import shutil
 import sys
 import tempfile
@@ -149,7 +150,8 @@ def _write_dataset(buffer: ReplayBuffer, episodes: Iterable[int], root: Path, re
     )
     try:
         for index in episodes:
-            frames = episode_frames(buffer.state[buffer.episode(index)], buffer.action[buffer.episode(index)])
+            frame_range = buffer.episode(index)
+            frames = episode_frames(buffer.state[frame_range], buffer.action[frame_range])
             for t in range(len(frames["action"])):
                 dataset.add_frame({key: values[t] for key, values in frames.items()} | {"task": TASK})
             dataset.save_episode()
@@ -217,6 +219,15 @@ def parse_episodes(spec: str) -> list[int]:
     return indices
 
 
+def _quiet_library_output() -> None:
+    """Keep the CLI's output to our progress bar: no per-episode `datasets` bars, and no torchcodec
+    load-failure traceback from LeRobot (it only matters for video datasets; this one has none)."""
+    import datasets
+
+    datasets.disable_progress_bars()
+    logging.getLogger("lerobot.utils.import_utils").setLevel(logging.ERROR)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """`pacdp-convert-pusht`: exits 2 with a one-line message (no traceback) on bad input."""
     parser = argparse.ArgumentParser(
@@ -230,6 +241,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--episodes", help="demo indices to convert, e.g. 0-19 or 0,1,2 (default: all)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output root")
     args = parser.parse_args(argv)
+    _quiet_library_output()
 
     try:
         episodes = parse_episodes(args.episodes) if args.episodes is not None else None

@@ -1,0 +1,270 @@
+"""The PushT zarr -> LeRobotDataset converter: geometry against gym_pusht, output contents, errors, CLI."""
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import zarr
+from shapely.geometry import Point, Polygon
+from shapely.ops import unary_union
+
+from lerobot_pacdp.datasets import pusht_zarr
+from lerobot_pacdp.datasets.pusht_geometry import (
+    GOAL_POSE,
+    SUCCESS_THRESHOLD,
+    keypoints_and_coverage,
+    reward_and_success,
+)
+from lerobot_pacdp.datasets.pusht_zarr import (
+    TASK,
+    PushTConversionError,
+    convert_pusht_zarr,
+    main,
+    parse_episodes,
+)
+from pacdp_testing import PUSHT_ZARR
+
+# agent x, y, block x, y, angle; the agent is kept clear of the block so the reset's physics step cannot push it.
+ENV_STATES = [
+    [50.0, 50.0, 256.0, 256.0, np.pi / 4],
+    [450.0, 450.0, 200.0, 300.0, 3.0],
+    [60.0, 450.0, 300.0, 150.0, -1.2],
+    [450.0, 60.0, 222.99, 381.6, 0.0],
+    [60.0, 60.0, 330.0, 330.0, 5.5],
+]
+FAR_POSE = [80.0, 420.0, 0.3]  # a block pose with no overlap with the goal T
+
+
+@pytest.fixture(scope="module")
+def pusht_env():
+    import gym_pusht  # noqa: F401  (registers gym_pusht/PushT-v0)
+
+    env = gym.make("gym_pusht/PushT-v0", obs_type="environment_state_agent_pos")
+    yield env
+    env.close()
+
+
+@pytest.mark.parametrize("state", ENV_STATES)
+def test_keypoints_and_coverage_match_gym_pusht(pusht_env, state):
+    observation, info = pusht_env.reset(options={"reset_to_state": np.array(state)})
+    # reset_to_state sets the block position before its angle, which rotates the body about its centre of
+    # gravity and moves the origin, so compare at the pose the env actually ended up in.
+    pose = info["block_pose"]
+    keypoints, coverage = keypoints_and_coverage(pose[None])
+    np.testing.assert_allclose(keypoints[0], observation["environment_state"], atol=1e-4)
+    np.testing.assert_allclose(observation["agent_pos"], state[:2], atol=1e-4)
+    assert coverage[0] == pytest.approx(pusht_env.unwrapped._get_coverage(), abs=1e-9)
+
+
+def test_goal_pose_and_threshold_match_gym_pusht(pusht_env):
+    pusht_env.reset(seed=0)
+    np.testing.assert_allclose(pusht_env.unwrapped.goal_pose, GOAL_POSE)
+    assert pusht_env.unwrapped.success_threshold == SUCCESS_THRESHOLD
+
+
+def test_block_on_the_goal_is_a_success_and_far_away_is_not():
+    nudged = GOAL_POSE + [6.0, 0.0, 0.0]
+    _, coverage = keypoints_and_coverage(np.stack([GOAL_POSE, np.array(FAR_POSE), nudged]))
+    reward, success = reward_and_success(coverage)
+    assert coverage[0] == pytest.approx(1.0)
+    assert coverage[1] == 0.0
+    np.testing.assert_allclose(reward[:2], [1.0, 0.0])
+    assert 0.0 < reward[2] < 1.0
+    assert success.tolist() == [True, False, False]
+
+
+def write_replay_buffer(path: Path, state: np.ndarray, action: np.ndarray, episode_ends: list[int]) -> Path:
+    """A Diffusion-Policy-style replay buffer (zarr v2, like the real one)."""
+    group = zarr.open_group(str(path), mode="w", zarr_format=2)
+    group.create_array("data/state", data=np.asarray(state, dtype=np.float32))
+    group.create_array("data/action", data=np.asarray(action, dtype=np.float32))
+    group.create_array("meta/episode_ends", data=np.asarray(episode_ends, dtype=np.int64))
+    return path
+
+
+@pytest.fixture
+def tiny_zarr(tmp_path) -> Path:
+    """Two episodes (3 and 4 frames); the second reaches the goal pose on its third frame."""
+    far, goal = [*FAR_POSE], [*GOAL_POSE]
+    blocks = [far, far, far, far, far, goal, goal]
+    state = [[100.0 + i, 200.0 - i, *block] for i, block in enumerate(blocks)]
+    action = [[110.0 + i, 190.0 - i] for i in range(len(blocks))]
+    return write_replay_buffer(tmp_path / "tiny.zarr", state, action, [3, 7])
+
+
+def load(root: Path, monkeypatch):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setattr("huggingface_hub.constants.HF_HUB_OFFLINE", True)
+    return LeRobotDataset("local/pusht", root=root)
+
+
+def column(dataset, key: str) -> np.ndarray:
+    return np.stack([np.asarray(value) for value in dataset.hf_dataset[key]])
+
+
+def test_next_reward_success_and_done_describe_the_state_after_the_action(tiny_zarr, tmp_path, monkeypatch):
+    root = convert_pusht_zarr(tiny_zarr, tmp_path / "out")
+    dataset = load(root, monkeypatch)
+    assert dataset.num_episodes == 2
+    # Episode 1 reaches the goal at its frame 2, so frame 1's action leads to success; the last frame
+    # has no successor and keeps its own (successful) state.
+    assert column(dataset, "next.success").reshape(-1).tolist() == [False] * 3 + [False, True, True, True]
+    np.testing.assert_allclose(column(dataset, "next.reward").reshape(-1), [0, 0, 0, 0, 1, 1, 1])
+    assert column(dataset, "next.done").reshape(-1).tolist() == [False, False, True, False, False, False, True]
+
+
+@pytest.fixture(scope="module")
+def real_conversion(tmp_path_factory):
+    """Demos 0 and 2 of the real replay buffer (non-adjacent, to exercise the episode slicing)."""
+    if not PUSHT_ZARR.exists():
+        pytest.skip(f"shared PushT demos not found at {PUSHT_ZARR}")
+    root = convert_pusht_zarr(PUSHT_ZARR, tmp_path_factory.mktemp("pusht") / "local_pusht", episodes=[0, 2])
+    return root, pusht_zarr.load_replay_buffer(PUSHT_ZARR)
+
+
+def test_real_demos_convert_to_a_loadable_dataset(real_conversion, monkeypatch):
+    root, buffer = real_conversion
+    dataset = load(root, monkeypatch)
+    demos = [buffer.episode(0), buffer.episode(2)]
+
+    assert dataset.fps == 10
+    assert dataset.meta.total_episodes == 2
+    assert [int(n) for n in dataset.meta.episodes["length"]] == [s.stop - s.start for s in demos]
+    expected_shapes = {
+        "observation.state": (2,),
+        "observation.environment_state": (16,),
+        "action": (2,),
+        "next.reward": (1,),
+        "next.success": (1,),
+        "next.done": (1,),
+    }
+    assert {key: tuple(dataset.features[key]["shape"]) for key in expected_shapes} == expected_shapes
+    assert dataset.features["next.success"]["dtype"] == "bool"
+
+    state = np.concatenate([buffer.state[s] for s in demos])
+    np.testing.assert_array_equal(column(dataset, "observation.state"), state[:, :2])
+    np.testing.assert_array_equal(column(dataset, "action"), np.concatenate([buffer.action[s] for s in demos]))
+    keypoints, _ = keypoints_and_coverage(state[:, 2:])
+    np.testing.assert_allclose(column(dataset, "observation.environment_state"), keypoints, atol=1e-3)
+    assert int(column(dataset, "next.done").sum()) == 2
+
+    frame = dataset[0]
+    assert frame["task"] == TASK
+    assert frame["observation.environment_state"].shape == (16,)
+
+
+def test_replay_buffer_block_pose_is_the_body_origin(real_conversion):
+    """Diffusion Policy's own 9 keypoints sit at fixed points on the T in the frame our pose defines.
+
+    This pins the one assumption the env comparison cannot check: that the zarr's block x, y is the body
+    origin gym_pusht's keypoints are relative to (the centre of gravity is 45 px away, along the stem).
+    """
+    _, buffer = real_conversion
+    dp_keypoints = np.asarray(zarr.open_group(str(PUSHT_ZARR), mode="r")["data/keypoint"][:2000], np.float64)
+    x, y, angle = buffer.state[:2000, 2:].astype(np.float64).T
+    cos, sin = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    dx, dy = dp_keypoints[..., 0] - x[:, None], dp_keypoints[..., 1] - y[:, None]
+    local = np.stack([cos * dx + sin * dy, -sin * dx + cos * dy], axis=-1)
+    assert local.std(axis=0).max() < 0.1
+
+    corners = keypoints_and_coverage(np.zeros((1, 3)))[0].reshape(8, 2)
+    tee = unary_union([Polygon(corners[:4]), Polygon(corners[4:])])
+    assert max(tee.distance(Point(p)) for p in local.mean(axis=0)) < 5.0
+
+
+def no_leftovers(parent: Path) -> list[str]:
+    return sorted(path.name for path in parent.iterdir())
+
+
+def test_missing_path_is_a_clear_error(tmp_path):
+    with pytest.raises(PushTConversionError, match="does not exist"):
+        convert_pusht_zarr(tmp_path / "nowhere.zarr", tmp_path / "out")
+    assert no_leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("kind", ["empty_dir", "missing_episode_ends"])
+def test_non_replay_buffer_is_a_clear_error(tmp_path, kind):
+    source = tmp_path / "source.zarr"
+    if kind == "empty_dir":
+        source.mkdir()
+        match = "not a zarr store"
+    else:
+        group = zarr.open_group(str(source), mode="w", zarr_format=2)
+        group.create_array("data/state", data=np.zeros((3, 5), np.float32))
+        group.create_array("data/action", data=np.zeros((3, 2), np.float32))
+        match = "missing array\\(s\\) meta/episode_ends"
+    with pytest.raises(PushTConversionError, match=match):
+        convert_pusht_zarr(source, tmp_path / "out")
+    assert no_leftovers(tmp_path) == ["source.zarr"]
+
+
+def test_wrong_shapes_are_a_clear_error(tmp_path):
+    source = write_replay_buffer(tmp_path / "bad.zarr", np.zeros((4, 4)), np.zeros((4, 2)), [4])
+    with pytest.raises(PushTConversionError, match=r"data/state has shape \(4, 4\)"):
+        convert_pusht_zarr(source, tmp_path / "out")
+    source = write_replay_buffer(tmp_path / "bad2.zarr", np.zeros((4, 5)), np.zeros((4, 2)), [2, 5])
+    with pytest.raises(PushTConversionError, match="episode_ends"):
+        convert_pusht_zarr(source, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_out_of_range_episodes_are_a_clear_error(tiny_zarr, tmp_path):
+    with pytest.raises(PushTConversionError, match=r"\[2, -1\] are out of range.*2 episodes"):
+        convert_pusht_zarr(tiny_zarr, tmp_path / "out", episodes=[0, 2, -1])
+    assert no_leftovers(tmp_path) == ["tiny.zarr"]
+
+
+def test_existing_output_needs_overwrite(tiny_zarr, tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("previous")
+    with pytest.raises(PushTConversionError, match="already exists.*overwrite"):
+        convert_pusht_zarr(tiny_zarr, out)
+    assert (out / "keep.txt").read_text() == "previous"
+
+    convert_pusht_zarr(tiny_zarr, out, episodes=[1], overwrite=True)
+    assert not (out / "keep.txt").exists()
+    assert load(out, monkeypatch).num_frames == 4
+    assert no_leftovers(tmp_path) == ["out", "tiny.zarr"]
+
+
+def test_a_failure_mid_conversion_leaves_nothing_behind(tiny_zarr, tmp_path, monkeypatch):
+    real_episode_frames = pusht_zarr.episode_frames
+    calls = []
+
+    def fail_on_second_episode(state, action):
+        calls.append(len(state))
+        if len(calls) == 2:
+            raise RuntimeError("disk full")
+        return real_episode_frames(state, action)
+
+    monkeypatch.setattr(pusht_zarr, "episode_frames", fail_on_second_episode)
+    with pytest.raises(RuntimeError, match="disk full"):
+        convert_pusht_zarr(tiny_zarr, tmp_path / "out")
+    assert no_leftovers(tmp_path) == ["tiny.zarr"]
+
+
+def test_parse_episodes():
+    assert parse_episodes("0-3") == [0, 1, 2, 3]
+    assert parse_episodes("0,1, 5") == [0, 1, 5]
+    assert parse_episodes("0-1,7") == [0, 1, 7]
+    with pytest.raises(PushTConversionError, match="0-19"):
+        parse_episodes("first-ten")
+
+
+def test_cli_bad_input_exits_2_with_a_message(tmp_path, capsys):
+    assert main(["--zarr", str(tmp_path / "nowhere.zarr"), "--output-root", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "does not exist" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_converts_and_says_how_to_train(tiny_zarr, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "out"
+    assert main(["--zarr", str(tiny_zarr), "--output-root", str(out), "--episodes", "1"]) == 0
+    printed = capsys.readouterr().out
+    assert str(out) in printed and f"--dataset.root={out}" in printed
+    assert load(out, monkeypatch).num_episodes == 1
