@@ -132,3 +132,13 @@ def test_mean_posterior_sigma_is_softplus_of_rho():
     layer = make_bayesian(nn.Linear(4, 4), PRIOR_RHO)
     assert mean_posterior_sigma(layer) == pytest.approx(math.log1p(math.exp(PRIOR_RHO)), rel=1e-6)
     assert softplus_inverse(math.log1p(math.exp(PRIOR_RHO))) == pytest.approx(PRIOR_RHO)
+
+
+def test_closed_form_kl_gradient_passes_gradcheck():
+    from lerobot_pacdp.bayesian_layers import _GaussianKL
+
+    torch.manual_seed(5)
+    mu = torch.randn(6, 3, dtype=torch.float64, requires_grad=True)
+    sigma = (torch.rand(6, 3, dtype=torch.float64) + 0.1).requires_grad_()
+    prior_mu, prior_sigma = torch.randn(6, 3, dtype=torch.float64), torch.tensor(0.3, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda m, s: _GaussianKL.apply(m, s, prior_mu, prior_sigma), (mu, sigma))
