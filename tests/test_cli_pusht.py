@@ -60,3 +60,9 @@ def test_convert_train_resume_and_evaluate_pusht(tmp_path, pusht_zarr):
     info = json.loads((eval_dir / "eval_info.json").read_text())
     overall = info["overall"]
     assert overall["n_episodes"] == 1 and 0.0 <= overall["pc_success"] <= 100.0
+
+    # The Python example loads the same checkpoint and queries actions in both inference modes.
+    example = Path(__file__).parents[1] / "examples" / "query_actions.py"
+    query = _run([sys.executable, str(example), "--checkpoint", str(resumed)])
+    assert "mean mode: chunk shape (1, 4, 2)" in query.stdout and "two calls identical" in query.stdout
+    assert "sample mode: chunk shape (1, 4, 2)" in query.stdout and "differ" in query.stdout

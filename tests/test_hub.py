@@ -60,3 +60,33 @@ def test_push_writes_weights_configs_processors_and_a_model_card_then_loads_back
         assert torch.equal(loaded.state_dict()[key], value), key
     pre, _ = make_pre_post_processors(loaded.config, pretrained_path=REPO_ID)
     assert len(pre.steps) == len(preprocessor.steps)
+
+
+@pytest.mark.slow
+def test_publish_example_uploads_a_lerobot_train_checkpoint(tmp_path, local_hub):
+    """examples/publish_to_hub.py on a real lerobot-train checkpoint (trained here in-process)."""
+    import importlib.util
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    data = tmp_path / "data"
+    make_tiny_dataset(data, [30, 30])
+    out = tmp_path / "train"
+    subprocess.run(
+        [str(Path(sys.executable).parent / "lerobot-train"), "--policy.type=pacdp", "--policy.down_dims=[16,32]",
+         "--policy.horizon=8", "--policy.n_action_steps=4", "--policy.drop_n_last_frames=3",
+         "--policy.diffusion_step_embed_dim=16", "--policy.device=cpu", "--policy.push_to_hub=false",
+         "--dataset.repo_id=local/tiny", f"--dataset.root={data}", "--steps=2", "--batch_size=4",
+         "--wandb.enable=false", "--num_workers=0", f"--output_dir={out}"],
+        check=True, capture_output=True, env={**__import__("os").environ, "HF_HUB_OFFLINE": "1"}, timeout=600,
+    )
+    checkpoint = out / "checkpoints" / "last" / "pretrained_model"
+    spec = importlib.util.spec_from_file_location("publish_to_hub", Path(__file__).parents[1] / "examples" / "publish_to_hub.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main(["--checkpoint", str(checkpoint), "--repo-id", REPO_ID])
+    repo = local_hub / REPO_ID
+    assert {p.name for p in checkpoint.iterdir()} <= {p.name for p in repo.iterdir()}
+    assert (repo / "README.md").read_text().count("pacdp") >= 1
+    assert (repo / "model.safetensors").read_bytes() == (checkpoint / "model.safetensors").read_bytes()
