@@ -9,6 +9,7 @@ CUDA: torch.cuda.max_memory_allocated). Prints a table and writes JSON to benchm
 """
 
 import argparse
+import dataclasses
 import json
 import platform
 import statistics
@@ -16,7 +17,6 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import psutil
@@ -32,7 +32,7 @@ RESULTS_DIR = Path(__file__).parent / "results"
 STATE_DIM, ENV_DIM, ACTION_DIM = 2, 16, 2  # PushT, state-based
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class Preset:
     down_dims: tuple[int, ...]
     step_embed_dim: int
@@ -184,7 +184,8 @@ def measure_memory(preset_name: str, device: str) -> dict[str, int]:
     peaks = {}
     for method in ("dp", "pacdp"):
         out = subprocess.run(
-            [sys.executable, __file__, "--memory-child", method, "--preset", preset_name, "--device", device],
+            [sys.executable, __file__, "--memory-child", method, "--preset", preset_name, "--device", device,
+             "--batch-size", str(PRESETS[preset_name].batch_size)],
             capture_output=True, text=True, check=True,
         )
         peaks[f"{method}_peak_bytes"] = int(out.stdout.strip().splitlines()[-1])
@@ -195,8 +196,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--batch-size", type=int, help="override the preset's batch size")
     parser.add_argument("--memory-child", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.batch_size:
+        PRESETS[args.preset] = dataclasses.replace(PRESETS[args.preset], batch_size=args.batch_size)
     if args.memory_child:
         peak_memory_child(args.memory_child, args.preset, args.device)
         return
@@ -228,7 +232,7 @@ def main() -> None:
     print(f"{'sample-mode chunk (ms)':<22}{times['dp_chunk_s']*1e3:>12.1f}{times['pacdp_sample_chunk_s']*1e3:>12.1f}{ratios['sample_mode_latency']:>8.2f}{'':>8}")
     print(f"{'peak memory (MiB)':<22}{memory['dp_peak_bytes']/2**20:>12.1f}{memory['pacdp_peak_bytes']/2**20:>12.1f}{ratios['peak_memory']:>8.2f}{'':>8}")
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-    out = RESULTS_DIR / f"speed_{args.preset}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
+    out = RESULTS_DIR / f"speed_{args.preset}_b{preset.batch_size}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
     out.write_text(json.dumps(result, indent=2))
     print(f"wrote {out}")
 
