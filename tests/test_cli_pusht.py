@@ -7,6 +7,8 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
+from safetensors.torch import load_file
 
 BIN = Path(sys.executable).parent
 TINY_POLICY = [
@@ -51,6 +53,10 @@ def test_convert_train_resume_and_evaluate_pusht(tmp_path, pusht_zarr):
           "--save_freq=2"])
     resumed = out / "checkpoints" / "000006" / "pretrained_model"
     assert json.loads((resumed / "config.json").read_text())["num_train_samples"] == n_train
+    before, after = load_file(checkpoint / "model.safetensors"), load_file(resumed / "model.safetensors")
+    priors = [k for k in before if k.endswith(("_prior_mu", "prior_rho"))]
+    assert priors and all(torch.equal(before[k], after[k]) for k in priors)  # same prior after resume
+    assert not torch.equal(before["diffusion.unet.final_conv.1.weight"], after["diffusion.unet.final_conv.1.weight"])
     assert json.loads((out / "checkpoints" / "000006" / "training_state" / "training_step.json").read_text())["step"] == 6
 
     eval_dir = tmp_path / "eval"
