@@ -1,0 +1,188 @@
+"""A PAC-DP prior learnt on a disjoint split of the demonstrations (data-dependent prior, PBB recipe).
+
+With a data-free prior (sigma_p = 0.011 around a random init) a U-Net's KL(Q||P) dwarfs the number of
+demonstrations and the certificate is vacuous. Centring the prior on a network trained on split A and
+certifying on a disjoint split B keeps the bound valid (the prior never sees B) and the KL small.
+
+Recipe (split A = demos 0-69, split B = demos 70-199 here):
+
+1. Train DP (or BDP/PAC-DP) on split A:
+   lerobot-train --policy.type=diffusion ... --dataset.episodes='[0,...,69]' --output_dir=outputs/prior_A
+2. Build the PAC-DP prior checkpoint from it (prior means = initial posterior means = its weights):
+   pacdp-learned-prior --source=outputs/prior_A/checkpoints/last/pretrained_model \
+       --output_dir=outputs/prior_A_pacdp --prior_rho=-4.5 --kl_weight=1e-4
+3. Fine-tune PAC-DP on split B (N is derived from split B's training frames):
+   lerobot-train --policy.path=outputs/prior_A_pacdp --dataset.repo_id=... \
+       --dataset.episodes='[70,...,199]' --dataset.eval_split=0.3 --output_dir=outputs/pacdp_B
+4. Certify on split B's training demonstrations (and bound the mean network on B's held-out ones):
+   pacdp-certify --checkpoint=outputs/pacdp_B/checkpoints/last/pretrained_model --prior=outputs/prior_A_pacdp
+
+`learned_prior.json` in the built directory records split A's training episodes, and `pacdp-certify
+--prior` refuses to certify on any of them. Caveat: LeRobot's normalisation stats are computed over the
+whole dataset (A and B); for a strictly B-independent prior, build the dataset of split A alone.
+"""
+
+import json
+import logging
+import shutil
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import draccus
+from lerobot.configs.policies import PreTrainedConfig
+from safetensors.torch import load_file
+
+from lerobot_pacdp.bayesian_layers import kl_divergence
+from lerobot_pacdp.configuration_pacdp import PacdpConfig
+from lerobot_pacdp.metrics.checkpoints import (
+    CheckpointNotFoundError,
+    MetricsError,
+    checkpoint_policy_type,
+    resolve_pretrained_dir,
+    run_cli,
+)
+from lerobot_pacdp.metrics.data import split_from_train_config
+from lerobot_pacdp.modeling_pacdp import PacdpPolicy
+
+logger = logging.getLogger(__name__)
+
+PROVENANCE_FILE = "learned_prior.json"
+PROCESSOR_PATTERNS = ("policy_preprocessor*", "policy_postprocessor*")
+_PRIOR_MU_SUFFIX = "_prior_mu"
+_KEPT_SUFFIXES = ("_rho", "prior_rho")  # the new posterior's rho starts at the prior's rho (Q = P)
+_COMPILED_PREFIX = "_orig_mod."  # torch.compile'd U-Nets save their keys under this prefix
+
+
+def learned_prior_state(policy: PacdpPolicy, source: dict) -> dict:
+    """The PAC-DP state dict with prior means and posterior means both set to the source's weights.
+
+    A DP checkpoint's `...weight` / `...bias` have the names of PAC-DP's mu; a PAC-DP/BDP source contributes
+    its mu (its own rho and prior are dropped). Every other tensor (GroupNorm, FiLM projections,
+    observation encoders) is copied as is.
+    """
+    source = {key.replace(_COMPILED_PREFIX, ""): value for key, value in source.items()}
+    state, used, problems = policy.state_dict(), set(), []
+    for key, value in state.items():
+        if key.endswith(_KEPT_SUFFIXES):
+            continue
+        source_key = key.removesuffix(_PRIOR_MU_SUFFIX)
+        if source_key not in source:
+            problems.append(f"{source_key} missing")
+        elif source[source_key].shape != value.shape:
+            problems.append(f"{source_key} has shape {tuple(source[source_key].shape)}, expected {tuple(value.shape)}")
+        else:
+            state[key] = source[source_key].to(value.dtype)
+            used.add(source_key)
+    unused = [k for k in source if k not in used and not k.endswith((*_KEPT_SUFFIXES, _PRIOR_MU_SUFFIX))]
+    problems += [f"{k} has no place in the PAC-DP network" for k in unused]
+    if problems:
+        raise MetricsError(
+            f"the source weights do not fit a PAC-DP network of the same configuration: {'; '.join(problems[:6])}"
+            f"{' ...' if len(problems) > 6 else ''}"
+        )
+    return state
+
+
+def build_learned_prior(
+    source: str | Path,
+    output_dir: str | Path,
+    *,
+    prior_rho: float | None = None,
+    kl_weight: float | None = None,
+    delta: float | None = None,
+    bayesian_conditioning: bool | None = None,
+) -> Path:
+    """Save a PAC-DP checkpoint whose prior and initial posterior means are `source`'s weights.
+
+    The architecture, features, normalisation and diffusion settings are the source's; the PAC-Bayes
+    fields are the source's (PAC-DP/BDP) or PacdpConfig's defaults (DP), unless overridden. N is left
+    unset so that lerobot-train derives it from the split the prior is fine-tuned on.
+    """
+    source_dir = resolve_pretrained_dir(source)
+    source_type = checkpoint_policy_type(source_dir)
+    output_dir = Path(output_dir)
+    if output_dir.exists() and any(output_dir.iterdir()):
+        raise MetricsError(f"{output_dir} exists and is not empty; choose a new --output_dir.")
+    source_config = PreTrainedConfig.from_pretrained(source_dir)
+    values = {f.name: getattr(source_config, f.name) for f in fields(source_config) if f.init}
+    values.update(compile_model=False, num_train_samples=None, device="cpu", pretrained_path=None)
+    overrides = dict(prior_rho=prior_rho, kl_weight=kl_weight, delta=delta, bayesian_conditioning=bayesian_conditioning)
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    config = PacdpConfig(**{f.name: values[f.name] for f in fields(PacdpConfig) if f.init and f.name in values})
+
+    policy = PacdpPolicy(config)
+    policy.load_state_dict(learned_prior_state(policy, load_file(source_dir / "model.safetensors")), strict=True)
+    kl = kl_divergence(policy.unet).item()
+    if kl != 0.0:
+        raise AssertionError(f"KL(Q||P) of the freshly built prior checkpoint is {kl}, expected exactly 0")
+
+    policy.save_pretrained(output_dir)
+    for pattern in PROCESSOR_PATTERNS:
+        for path in source_dir.glob(pattern):
+            shutil.copy2(path, output_dir / path.name)
+    try:
+        prior_episodes = split_from_train_config(source_dir).train_episodes
+    except MetricsError as exc:
+        logger.warning("cannot record the prior's training episodes (%s); `pacdp-certify --prior` cannot check the split.", exc)
+        prior_episodes = None
+    provenance = {"source": str(source_dir), "source_type": source_type, "prior_train_episodes": prior_episodes}
+    (output_dir / PROVENANCE_FILE).write_text(json.dumps(provenance, indent=2))
+    return output_dir
+
+
+def check_disjoint_from_prior(prior_dir: str | Path, certified_episodes: Sequence[int]) -> None:
+    """Refuse to certify on demonstrations the learnt prior was trained on (the bound would be invalid)."""
+    provenance_file = Path(prior_dir) / PROVENANCE_FILE
+    if not provenance_file.is_file():
+        raise CheckpointNotFoundError(f"{prior_dir} has no {PROVENANCE_FILE}: it was not built by pacdp-learned-prior.")
+    prior_episodes = json.loads(provenance_file.read_text())["prior_train_episodes"]
+    if prior_episodes is None:
+        raise MetricsError(
+            f"{provenance_file} does not record the prior's training episodes; check the split by hand and "
+            "certify without --prior."
+        )
+    overlap = sorted(set(prior_episodes) & set(certified_episodes))
+    if overlap:
+        raise MetricsError(
+            f"the prior of {prior_dir} was trained on {len(overlap)} of the certified demonstrations "
+            f"(e.g. {overlap[:10]}); certify on a split disjoint from the prior's."
+        )
+
+
+@dataclass
+class LearnedPriorConfig:
+    """`pacdp-learned-prior`: a PAC-DP checkpoint centred on a DP/BDP/PAC-DP checkpoint trained on split A."""
+
+    source: Path | None = None  # .../checkpoints/<step>/pretrained_model of the split-A run
+    output_dir: Path | None = None
+    prior_rho: float | None = None
+    kl_weight: float | None = None
+    delta: float | None = None
+    bayesian_conditioning: bool | None = None
+
+
+def _main(argv: Sequence[str] | None) -> int:
+    cfg = draccus.parse(config_class=LearnedPriorConfig, args=argv)
+    if cfg.source is None or cfg.output_dir is None:
+        raise MetricsError("pass --source=<split-A checkpoint> and --output_dir=<new directory>")
+    out = build_learned_prior(
+        cfg.source,
+        cfg.output_dir,
+        prior_rho=cfg.prior_rho,
+        kl_weight=cfg.kl_weight,
+        delta=cfg.delta,
+        bayesian_conditioning=cfg.bayesian_conditioning,
+    )
+    print(f"Wrote the PAC-DP prior checkpoint {out}. Fine-tune it on the disjoint split with:")
+    print(f"  lerobot-train --policy.path={out} --dataset.episodes='[<split B>]' ...")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_cli("pacdp-learned-prior", _main, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,340 @@
+"""`pacdp-metrics`: NPE and NLL bound (and optionally success rate) of every checkpoint of lerobot-train runs.
+
+Writes one row per run x checkpoint step (`metrics.csv`, `metrics.json`), plots of each metric against
+the training step with one curve per method and a mean +- std band over its runs/seeds (paper Fig. 3:
+`npe.png`, `nll_bound.png`, `success_rate.png`, all panels in `training_dynamics.png`), and the paper's
+summary statistic (`summary.json`, printed): per run the mean over its last 10 checkpoints, then mean +-
+std (sample std, ddof=1) over the runs of a method.
+
+    pacdp-metrics --runs=outputs/pacdp_s0,outputs/pacdp_s1,outputs/dp_s0,outputs/dp_s1 --output_dir=outputs/metrics
+
+Held-out episodes default to each run's own `--dataset.eval_split` episodes (from train_config.json);
+methods default to DP / BDP (pacdp with kl_weight 0) / PAC-DP, or pass `--labels` (one per run).
+Every checkpoint is evaluated on the same per-example draws (`--seed`), so curves differ by the
+models only. Rows already in `metrics.json` with the same settings are reused (`--resume=false` recomputes).
+"""
+
+import csv
+import json
+import logging
+import math
+import sys
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import draccus
+import torch
+from lerobot.envs.configs import EnvConfig
+from tqdm.auto import tqdm
+
+from lerobot_pacdp.metrics.checkpoints import LoadedPolicy, MetricsError, list_checkpoints, load_policy, run_cli
+from lerobot_pacdp.metrics.data import DatasetArgs, EvaluationData, resolve_split
+from lerobot_pacdp.metrics.nll_bound import NllAccumulator, NllBound, nll_step_errors
+from lerobot_pacdp.metrics.noise_prediction import MeanWithError, alphas_cumprod, noise_prediction_errors, policy_denoiser
+
+logger = logging.getLogger(__name__)
+
+METRICS = {  # column -> axis label
+    "npe": "noise prediction error",
+    "nll_bound": "NLL bound (nats / dim)",
+    "success_rate": "success rate",
+}
+CSV_COLUMNS = [
+    "label", "run", "step", "checkpoint", "policy_type", "npe", "npe_sem", "npe_examples",
+    "nll_bound", "nll_baseline", "nll_examples", "success_rate",
+]  # fmt: skip
+
+
+@dataclass(frozen=True)
+class CheckpointMetrics:
+    npe: MeanWithError
+    nll: NllBound | None
+
+
+def evenly_spaced_steps(num_timesteps: int, count: int | None) -> list[int]:
+    """`count` diffusion steps spread over the schedule, both ends included (all of them for None)."""
+    if count is None or count >= num_timesteps:
+        return list(range(num_timesteps))
+    if count < 2:
+        raise MetricsError(f"nll_steps must be >= 2 (the trapezoid needs two log-SNRs), got {count}")
+    return torch.linspace(0, num_timesteps - 1, count).round().long().unique().tolist()
+
+
+@torch.no_grad()
+def evaluate_checkpoint(
+    loaded: LoadedPolicy,
+    data: EvaluationData,
+    seed: int = 0,
+    batch_size: int = 256,
+    nll: bool = True,
+    nll_steps: Sequence[int] | None = None,
+    desc: str | None = None,
+) -> CheckpointMetrics:
+    """NPE (paper Sec. IV; the posterior mean for pacdp) and the NLL bound of one checkpoint on `data`.
+
+    One pass: each window's NPE at its own seeded (t, eps), and for windows whose whole action chunk is
+    real, its error at each diffusion step of `nll_steps` (default: every step of the schedule).
+    """
+    policy = loaded.policy
+    alpha_bar = alphas_cumprod(policy)
+    steps = list(range(len(alpha_bar))) if nll_steps is None else list(nll_steps)
+    accumulator = NllAccumulator(alpha_bar, steps, seed) if nll else None
+    npe_errors = []
+    for batch in data.batches(loaded, batch_size, desc=desc):
+        denoiser = policy_denoiser(policy, batch.global_cond)
+        npe_errors.append(noise_prediction_errors(denoiser, batch.actions, batch.valid, batch.index, alpha_bar, seed).cpu())
+        complete = batch.valid.all(dim=1)
+        if accumulator is not None and complete.any():
+            actions, index = batch.actions[complete], batch.index[complete]
+            complete_denoiser = policy_denoiser(policy, batch.global_cond[complete])
+            accumulator.add(nll_step_errors(complete_denoiser, actions, index, alpha_bar, steps, seed), actions, index)
+    return CheckpointMetrics(
+        MeanWithError.of(torch.cat(npe_errors)), accumulator.result() if accumulator is not None else None
+    )
+
+
+def method_label(loaded: LoadedPolicy) -> str:
+    config = loaded.policy.config
+    if loaded.policy_type == "diffusion":
+        return "DP"
+    return "BDP" if config.kl_weight == 0 else "PAC-DP"
+
+
+@torch.no_grad()
+def success_rate(loaded: LoadedPolicy, envs: dict, env_cfg: EnvConfig, n_episodes: int, seed: int) -> float:
+    """Fraction of successful rollouts through LeRobot's own evaluation loop."""
+    from lerobot.envs.factory import make_env_pre_post_processors
+    from lerobot.scripts.lerobot_eval import eval_policy_all
+
+    env_preprocessor, env_postprocessor = make_env_pre_post_processors(env_cfg, loaded.policy.config)
+    info = eval_policy_all(
+        envs=envs,
+        policy=loaded.policy,
+        env_preprocessor=env_preprocessor,
+        env_postprocessor=env_postprocessor,
+        preprocessor=loaded.preprocessor,
+        postprocessor=loaded.postprocessor,
+        n_episodes=n_episodes,
+        start_seed=seed,
+    )
+    return info["overall"]["pc_success"] / 100.0
+
+
+def _finite(values: list[float]) -> list[float]:
+    return [v for v in values if v is not None and math.isfinite(v)]
+
+
+def _mean_std(values: list[float]) -> tuple[float, float]:
+    """Mean and sample standard deviation (ddof=1; 0 for a single value)."""
+    mean = sum(values) / len(values)
+    std = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1)) if len(values) > 1 else 0.0
+    return mean, std
+
+
+def summarize(rows: list[dict], last_k: int = 10) -> dict:
+    """Paper Sec. IV's statistic: per run the mean of its last `last_k` checkpoints, then mean +- std over runs."""
+    by_label_run: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    for row in rows:
+        by_label_run[row["label"]][row["run"]].append(row)
+    summary = {}
+    for label, runs in by_label_run.items():
+        summary[label] = {"runs": len(runs)}
+        for metric in METRICS:
+            per_run = []
+            for run_rows in runs.values():
+                values = _finite([r[metric] for r in sorted(run_rows, key=lambda r: r["step"])])[-last_k:]
+                if values:
+                    per_run.append(sum(values) / len(values))
+            if per_run:
+                mean, std = _mean_std(per_run)
+                summary[label][metric] = {"mean": mean, "std": std, "runs": len(per_run)}
+    return summary
+
+
+def format_summary(summary: dict, last_k: int) -> str:
+    lines = [f"mean over the last {last_k} checkpoints, mean +- std over runs:"]
+    for label, entry in summary.items():
+        parts = [f"{name} {entry[m]['mean']:.4f} +- {entry[m]['std']:.4f}" for m, name in METRICS.items() if m in entry]
+        lines.append(f"  {label} ({entry['runs']} runs): " + "  |  ".join(parts))
+    return "\n".join(lines)
+
+
+def plot_metrics(rows: list[dict], output_dir: Path) -> list[Path]:
+    """One PNG per metric with data, and all panels side by side (paper Fig. 3)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    present = [m for m in METRICS if _finite([r[m] for r in rows])]
+
+    def draw(ax, metric: str) -> None:
+        by_label: dict[str, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
+        for row in rows:
+            if row[metric] is not None and math.isfinite(row[metric]):
+                by_label[row["label"]][row["step"]].append(row[metric])
+        for label, by_step in sorted(by_label.items()):
+            steps = sorted(by_step)
+            stats = [_mean_std(by_step[s]) for s in steps]
+            (line,) = ax.plot(steps, [m for m, _ in stats], marker="o", markersize=3, label=label)
+            ax.fill_between(steps, [m - s for m, s in stats], [m + s for m, s in stats], color=line.get_color(), alpha=0.2)
+        baselines = _finite([row["nll_baseline"] for row in rows]) if metric == "nll_bound" else []
+        if baselines:  # what a denoiser no better than the Gaussian gets (the paper's -3.24 plateau on PushT)
+            ax.axhline(sum(baselines) / len(baselines), color="gray", linestyle="--", label="Gaussian baseline $h_G/d$")
+        ax.set_xlabel("training step")
+        ax.set_ylabel(METRICS[metric])
+        ax.grid(alpha=0.3)
+        ax.legend()
+
+    written = []
+    for metric in present:
+        fig, ax = plt.subplots(figsize=(5, 4))
+        draw(ax, metric)
+        fig.tight_layout()
+        written.append(output_dir / f"{metric}.png")
+        fig.savefig(written[-1], dpi=120)
+        plt.close(fig)
+    if present:
+        fig, axes = plt.subplots(1, len(present), figsize=(5 * len(present), 4), squeeze=False)
+        for ax, metric in zip(axes[0], present, strict=True):
+            draw(ax, metric)
+        fig.tight_layout()
+        written.append(output_dir / "training_dynamics.png")
+        fig.savefig(written[-1], dpi=120)
+        plt.close(fig)
+    return written
+
+
+@dataclass
+class SweepConfig:
+    """`pacdp-metrics` options (LeRobot-style `--flag=value`; `--config_path=file.json` works too)."""
+
+    runs: str = ""  # comma-separated lerobot-train output dirs (each with checkpoints/<step>/pretrained_model)
+    labels: str | None = None  # comma-separated method label per run (default: DP / BDP / PAC-DP)
+    output_dir: Path = Path("outputs/metrics")
+    dataset: DatasetArgs = field(default_factory=DatasetArgs)  # default: each run's dataset
+    episodes: str | None = None  # held-out episodes, e.g. "140-199" (default: each run's eval split)
+    seed: int = 0  # the per-example draws of t and eps
+    batch_size: int = 256
+    nll: bool = True
+    nll_steps: int | None = None  # evaluate the NLL bound at this many diffusion steps (default: all)
+    frame_stride: int = 1  # use every k-th held-out window (in episode order)
+    last_k: int = 10
+    device: str | None = None
+    resume: bool = True
+    # Success rate through LeRobot's evaluation, off unless an env is given (e.g. --env.type=pusht).
+    env: EnvConfig | None = None
+    eval_episodes: int = 50
+    eval_batch_size: int = 10
+
+
+def _settings(cfg: SweepConfig) -> dict:
+    """What a stored row depends on besides the checkpoint: rows are reused only if these match."""
+    keys = ("episodes", "seed", "nll", "nll_steps", "frame_stride", "eval_episodes")
+    settings = {k: getattr(cfg, k) for k in keys}
+    settings.update(dataset=str(cfg.dataset), env=None if cfg.env is None else repr(cfg.env))
+    return settings
+
+
+def _run_data(cfg: SweepConfig, loaded: LoadedPolicy) -> EvaluationData:
+    split = resolve_split(loaded.path, cfg.dataset, "", cfg.episodes)
+    if not split.heldout_episodes:
+        raise MetricsError(f"the run of {loaded.path} held out no episodes (eval_split = 0); pass --episodes.")
+    return EvaluationData(loaded.policy.config, split.repo_id, split.root, split.heldout_episodes, cfg.frame_stride)
+
+
+def run_sweep(cfg: SweepConfig) -> tuple[list[dict], dict]:
+    """Evaluate every checkpoint of every run; write the tables, plots and summary into cfg.output_dir."""
+    runs = [Path(r) for r in cfg.runs.split(",") if r.strip()]
+    if not runs:
+        raise MetricsError("pass --runs=<run dir>[,<run dir>...] (lerobot-train output directories)")
+    labels = cfg.labels.split(",") if cfg.labels else [None] * len(runs)
+    if len(labels) != len(runs):
+        raise MetricsError(f"--labels has {len(labels)} entries for {len(runs)} runs; give one label per run.")
+    checkpoints = {run: list_checkpoints(run) for run in runs}  # fail before any work on a bad run dir
+    cfg.output_dir.mkdir(parents=True, exist_ok=True)
+    settings = _settings(cfg)
+    stored = {}
+    previous_file = cfg.output_dir / "metrics.json"
+    if cfg.resume and previous_file.is_file():
+        previous = json.loads(previous_file.read_text())
+        if previous.get("settings") == settings:
+            stored = {row["checkpoint"]: row for row in previous["rows"]}
+
+    envs = None
+    if cfg.env is not None:
+        from lerobot.envs.factory import make_env
+
+        envs = make_env(cfg.env, n_envs=cfg.eval_batch_size, use_async_envs=False)
+    rows: list[dict] = []
+    heldout_sets = {}
+    try:
+        for run, label in zip(runs, labels, strict=True):
+            data = None
+            for step, ckpt in tqdm(checkpoints[run], desc=f"{run.name}", unit="ckpt"):
+                if str(ckpt) in stored:
+                    rows.append(stored[str(ckpt)] | {"label": label or stored[str(ckpt)]["label"]})
+                    continue
+                loaded = load_policy(ckpt, cfg.device)
+                if data is None:
+                    data = _run_data(cfg, loaded)
+                    heldout_sets[str(run)] = data.episodes
+                nll_steps = evenly_spaced_steps(len(alphas_cumprod(loaded.policy)), cfg.nll_steps)
+                result = evaluate_checkpoint(
+                    loaded, data, cfg.seed, cfg.batch_size, cfg.nll, nll_steps, desc=f"step {step}"
+                )
+                rows.append(
+                    {
+                        "label": label or method_label(loaded),
+                        "run": str(run),
+                        "step": step,
+                        "checkpoint": str(ckpt),
+                        "policy_type": loaded.policy_type,
+                        "npe": result.npe.mean,
+                        "npe_sem": result.npe.sem,
+                        "npe_examples": result.npe.n,
+                        "nll_bound": result.nll.nats_per_dim if result.nll else None,
+                        "nll_baseline": result.nll.baseline_nats_per_dim if result.nll else None,
+                        "nll_examples": result.nll.num_examples if result.nll else None,
+                        "success_rate": success_rate(loaded, envs, cfg.env, cfg.eval_episodes, cfg.seed) if envs else None,
+                    }
+                )
+                _write_tables(rows, settings, cfg.output_dir)
+    finally:
+        if envs is not None:
+            from lerobot.envs.utils import close_envs
+
+            close_envs(envs)
+    if len({tuple(v) for v in heldout_sets.values()}) > 1:
+        logger.warning("the runs were evaluated on different held-out episodes; their curves are not paired.")
+    _write_tables(rows, settings, cfg.output_dir)
+    summary = summarize(rows, cfg.last_k)
+    (cfg.output_dir / "summary.json").write_text(json.dumps({"last_k": cfg.last_k, "methods": summary}, indent=2))
+    plot_metrics(rows, cfg.output_dir)
+    return rows, summary
+
+
+def _write_tables(rows: list[dict], settings: dict, output_dir: Path) -> None:
+    with open(output_dir / "metrics.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        writer.writerows({k: ("" if row[k] is None else row[k]) for k in CSV_COLUMNS} for row in rows)
+    (output_dir / "metrics.json").write_text(json.dumps({"settings": settings, "rows": rows}, indent=2))
+
+
+def _main(argv: Sequence[str] | None) -> int:
+    cfg = draccus.parse(config_class=SweepConfig, args=argv)
+    rows, summary = run_sweep(cfg)
+    print(f"evaluated {len(rows)} checkpoints; wrote {cfg.output_dir}/metrics.csv, metrics.json, summary.json and plots")
+    print(format_summary(summary, cfg.last_k))
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_cli("pacdp-metrics", _main, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

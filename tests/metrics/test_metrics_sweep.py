@@ -1,0 +1,109 @@
+"""`pacdp-metrics` over lerobot-train-shaped run directories: tables, plots, summary, resume."""
+
+import csv
+import json
+import math
+
+import pytest
+import torch
+from metrics_testing import REPO_ID, STEPS
+
+from lerobot_pacdp.metrics import sweep
+from lerobot_pacdp.metrics.checkpoints import load_policy
+from lerobot_pacdp.metrics.data import EvaluationData
+from lerobot_pacdp.metrics.nll_bound import GaussianBaseline
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def swept(tiny_runs, tmp_path_factory):
+    out = tmp_path_factory.mktemp("metrics")
+    runs = ",".join(str(tiny_runs[name]) for name in ("pacdp_s0", "pacdp_s1", "bdp_s0", "dp_s0"))
+    argv = [f"--runs={runs}", f"--output_dir={out}", "--nll_steps=8", "--batch_size=32", "--last_k=2"]
+    assert sweep.main(argv) == 0
+    return out, argv
+
+
+def test_one_row_per_run_and_checkpoint_in_csv_and_json(swept, tiny_runs):
+    out, _ = swept
+    with open(out / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["step"] for r in rows] == [str(s) for s in STEPS] * 4
+    assert {r["label"] for r in rows} == {"PAC-DP", "BDP", "DP"}  # inferred from each checkpoint
+    assert [r["policy_type"] for r in rows][-1] == "diffusion"
+    for row in rows:
+        assert float(row["npe"]) > 0 and float(row["npe_sem"]) > 0 and int(row["npe_examples"]) > 0
+        assert float(row["nll_bound"]) <= float(row["nll_baseline"])
+        assert row["success_rate"] == ""  # off by default
+    stored = json.loads((out / "metrics.json").read_text())
+    assert len(stored["rows"]) == 12 and stored["settings"]["seed"] == 0
+    assert stored["rows"][0]["checkpoint"] == str(tiny_runs["pacdp_s0"] / "checkpoints" / "000100" / "pretrained_model")
+
+
+def test_plots_are_written(swept):
+    out, _ = swept
+    for name in ("npe.png", "nll_bound.png", "training_dynamics.png"):
+        assert (out / name).read_bytes()[:8] == PNG_MAGIC
+    assert not (out / "success_rate.png").exists()  # no data, no plot
+
+
+def test_summary_is_the_mean_of_the_last_k_checkpoints_then_mean_std_over_runs(swept):
+    out, _ = swept
+    rows = json.loads((out / "metrics.json").read_text())["rows"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["last_k"] == 2
+    per_run = [
+        sum(r["npe"] for r in rows if r["run"].endswith(run) and r["step"] in STEPS[-2:]) / 2
+        for run in ("pacdp_s0", "pacdp_s1")
+    ]
+    entry = summary["methods"]["PAC-DP"]
+    assert entry["runs"] == 2
+    assert entry["npe"]["mean"] == pytest.approx(sum(per_run) / 2)
+    assert entry["npe"]["std"] == pytest.approx(abs(per_run[0] - per_run[1]) / math.sqrt(2))  # sample std
+    assert summary["methods"]["DP"]["npe"]["std"] == 0.0
+
+
+def test_resume_reuses_stored_rows_and_labels_group_runs(swept, tiny_runs, monkeypatch, capsys):
+    out, argv = swept
+    monkeypatch.setattr(sweep, "load_policy", lambda *a, **k: pytest.fail("a stored checkpoint was re-evaluated"))
+    runs = f"{tiny_runs['pacdp_s0']},{tiny_runs['bdp_s0']}"
+    assert sweep.main([f"--runs={runs}", "--labels=mine,mine", *argv[1:]]) == 0
+    summary = json.loads((out / "summary.json").read_text())["methods"]
+    assert list(summary) == ["mine"] and summary["mine"]["runs"] == 2
+    assert "mine (2 runs)" in capsys.readouterr().out
+
+
+def test_nll_baseline_is_fitted_to_the_complete_held_out_chunks(tiny_runs, tiny_dataset):
+    loaded = load_policy(tiny_runs["pacdp_s1"] / "checkpoints" / "000200")
+    data = EvaluationData(loaded.policy.config, REPO_ID, tiny_dataset.root, [3, 4, 5])
+    result = sweep.evaluate_checkpoint(loaded, data, nll_steps=sweep.evenly_spaced_steps(100, 5))
+    chunks = []
+    for index in data.positions:  # by hand: normalise each window, keep those without padding
+        frame = loaded.preprocessor({k: v.unsqueeze(0) if torch.is_tensor(v) else v for k, v in data.dataset[index].items()})
+        if not frame["action_is_pad"].any():
+            chunks.append(frame["action"].flatten())
+    baseline = GaussianBaseline.fit(torch.stack(chunks))
+    assert result.nll.num_examples == len(chunks) and result.nll.dim == 8 * 2
+    assert result.nll.baseline_nats_per_dim == pytest.approx(baseline.entropy / baseline.dim, rel=1e-9)
+    assert len(result.nll.log_snr) == 5 and result.nll.log_snr[0] == pytest.approx(7.37, abs=0.01)
+
+
+def test_success_rate_through_lerobots_eval_loop(tiny_runs, tmp_path):
+    """The tiny policies are PushT-shaped (agent xy + 16 keypoints -> xy), so gym-pusht can roll them out."""
+    argv = [
+        f"--runs={tiny_runs['pacdp_s1']}",
+        f"--output_dir={tmp_path}",
+        "--nll=false",
+        "--env.type=pusht",
+        "--env.obs_type=environment_state_agent_pos",
+        "--env.episode_length=3",
+        "--eval_episodes=1",
+        "--eval_batch_size=1",
+    ]
+    assert sweep.main(argv) == 0
+    rows = json.loads((tmp_path / "metrics.json").read_text())["rows"]
+    assert len(rows) == len(STEPS)
+    assert all(r["success_rate"] == 0.0 and r["nll_bound"] is None for r in rows)  # 3 steps cannot push the T home
+    assert (tmp_path / "success_rate.png").read_bytes()[:8] == PNG_MAGIC
+    assert not (tmp_path / "nll_bound.png").exists()
