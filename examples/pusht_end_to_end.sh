@@ -24,7 +24,7 @@ if [ -e "$source" ]; then
   dataset=(--dataset.repo_id=local/pusht --dataset.root="$out/data")
 else
   echo "== 1/3 using hub dataset $source, demos $episodes"
-  episode_list=$("$bin/python" -c "from lerobot_pacdp.datasets.pusht_zarr import parse_episodes as p; import sys; print(str(p(sys.argv[1])).replace(' ', ''))" "$episodes")
+  episode_list=$("$bin/python" -c "from lerobot_pacdp.episodes import parse_episodes as p; import sys; print(str(p(sys.argv[1])).replace(' ', ''))" "$episodes")
   dataset=(--dataset.repo_id="$source" --dataset.episodes="$episode_list")
 fi
 

@@ -21,8 +21,8 @@ from lerobot_pacdp.datasets.pusht_zarr import (
     PushTConversionError,
     convert_pusht_zarr,
     main,
-    parse_episodes,
 )
+from lerobot_pacdp.episodes import EpisodeSelectionError, parse_episodes
 from pacdp_testing import PUSHT_ZARR
 
 # agent x, y, block x, y, angle; the agent is kept clear of the block so the reset's physics step cannot push it.
@@ -251,7 +251,7 @@ def test_parse_episodes():
     assert parse_episodes("0-3") == [0, 1, 2, 3]
     assert parse_episodes("0,1, 5") == [0, 1, 5]
     assert parse_episodes("0-1,7") == [0, 1, 7]
-    with pytest.raises(PushTConversionError, match="0-19"):
+    with pytest.raises(EpisodeSelectionError, match="0-19"):
         parse_episodes("first-ten")
 
 

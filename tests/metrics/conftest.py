@@ -5,8 +5,8 @@ from pathlib import Path
 import pytest
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from metrics_testing import EPISODE_LENGTHS, REPO_ID, make_run
 
+from metrics_testing import EPISODE_LENGTHS, REPO_ID, make_run
 from pacdp_testing import make_tiny_dataset
 
 

@@ -33,7 +33,7 @@ def test_monotone_in_q_and_in_c():
         assert values == sorted(values)
     for c in cs[1:]:
         values = [kl_inverse(q, c) for q in qs]
-        assert all(a < b for a, b in zip(values, values[1:]))
+        assert all(a < b for a, b in zip(values, values[1:], strict=False))
 
 
 def test_zero_complexity_gives_q_and_huge_complexity_gives_one():

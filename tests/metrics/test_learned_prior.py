@@ -7,7 +7,6 @@ import torch
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.policies.factory import make_policy
-from metrics_testing import REPO_ID
 from safetensors.torch import load_file
 
 from lerobot_pacdp.bayesian_layers import bayesian_layers, kl_divergence
@@ -15,6 +14,7 @@ from lerobot_pacdp.metrics import certificate
 from lerobot_pacdp.metrics.checkpoints import MetricsError, load_policy
 from lerobot_pacdp.metrics.learned_prior import PROVENANCE_FILE, build_learned_prior, check_disjoint_from_prior
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
+from metrics_testing import REPO_ID
 from pacdp_testing import random_batch
 
 
@@ -50,7 +50,9 @@ def test_mean_network_acts_exactly_like_the_source_dp(dp_prior):
     dp, pacdp = load_policy(source).policy, load_policy(out).policy
     batch = random_batch(pacdp.config, batch_size=3)
     noise = torch.randn(3, pacdp.config.horizon, 2, generator=torch.Generator().manual_seed(0))
-    torch.testing.assert_close(pacdp.predict_action_chunk(batch, noise=noise), dp.predict_action_chunk(batch, noise=noise), rtol=0, atol=0)
+    torch.testing.assert_close(
+        pacdp.predict_action_chunk(batch, noise=noise), dp.predict_action_chunk(batch, noise=noise), rtol=0, atol=0
+    )
 
 
 def test_lerobot_train_policy_path_fine_tunes_it_on_split_b(dp_prior, tiny_dataset):
@@ -70,10 +72,10 @@ def test_lerobot_train_policy_path_fine_tunes_it_on_split_b(dp_prior, tiny_datas
 
 def test_provenance_guards_the_split(dp_prior):
     _, out = dp_prior
-    assert json.loads((out / PROVENANCE_FILE).read_text())["prior_train_episodes"] == [0, 1, 2]
-    check_disjoint_from_prior(out, [3, 4, 5])
-    with pytest.raises(MetricsError, match="trained on 1 of the certified"):
-        check_disjoint_from_prior(out, [2, 3])
+    assert json.loads((out / PROVENANCE_FILE).read_text())["prior_episodes"] == [0, 1, 2, 3, 4, 5]
+    check_disjoint_from_prior(out, [6, 7])
+    with pytest.raises(MetricsError, match="learnt from 2 of the certified"):
+        check_disjoint_from_prior(out, [5, 2, 9])
 
 
 def test_certify_refuses_a_prior_trained_on_the_certified_demos(dp_prior, tiny_runs, capsys):

@@ -2,9 +2,7 @@
 
 import json
 import shutil
-import subprocess
-import sys
-from pathlib import Path
+from importlib.metadata import entry_points
 
 import numpy as np
 import pytest
@@ -55,9 +53,15 @@ def test_missing_checkpoint(tmp_path, capsys):
         load_policy(tmp_path / "nope")
     with pytest.raises(CheckpointNotFoundError, match="holds no config.json and model.safetensors"):
         load_policy(tmp_path)
-    with pytest.raises(CheckpointNotFoundError, match="not a lerobot-train output directory"):
+    with pytest.raises(CheckpointNotFoundError, match="neither a lerobot-train output directory"):
         list_checkpoints(tmp_path)
-    _cli_fails(sweep.main, [f"--runs={tmp_path / 'nope'}", f"--output_dir={tmp_path / 'out'}"], capsys, "pacdp-metrics: error:", "checkpoints")
+    _cli_fails(
+        sweep.main,
+        [f"--runs={tmp_path / 'nope'}", f"--output_dir={tmp_path / 'out'}"],
+        capsys,
+        "pacdp-metrics: error:",
+        "checkpoints",
+    )
     _cli_fails(certificate.main, [f"--checkpoint={tmp_path / 'nope'}"], capsys, "does not exist")
 
 
@@ -101,9 +105,9 @@ def test_dataset_that_does_not_match_the_policy(tiny_runs, tiny_dataset, wrong_d
     _cli_fails(sweep.main, argv, capsys, "does not match the policy", "observation.state")
 
 
-def test_installed_console_scripts_exit_2_with_one_message(tmp_path):
-    script = Path(sys.executable).parent / "pacdp-metrics"
-    result = subprocess.run([str(script), f"--runs={tmp_path / 'missing_run'}"], capture_output=True, text=True, timeout=300)
-    assert result.returncode == 2
-    assert "pacdp-metrics: error:" in result.stderr and "not a lerobot-train output directory" in result.stderr
-    assert "Traceback" not in result.stderr
+def test_console_scripts_are_these_mains():
+    """The installed scripts run `sys.exit(main())`: the in-process exit-2 checks above cover them."""
+    scripts = {ep.name: ep for ep in entry_points(group="console_scripts") if ep.name.startswith("pacdp-")}
+    assert scripts["pacdp-metrics"].load() is sweep.main
+    assert scripts["pacdp-certify"].load() is certificate.main
+    assert scripts["pacdp-learned-prior"].load() is learned_prior.main

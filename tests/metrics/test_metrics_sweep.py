@@ -6,21 +6,22 @@ import math
 
 import pytest
 import torch
-from metrics_testing import REPO_ID, STEPS
 
 from lerobot_pacdp.metrics import sweep
 from lerobot_pacdp.metrics.checkpoints import load_policy
 from lerobot_pacdp.metrics.data import EvaluationData
 from lerobot_pacdp.metrics.nll_bound import GaussianBaseline
+from metrics_testing import REPO_ID, STEPS
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.fixture(scope="module")
-def swept(tiny_runs, tmp_path_factory):
+def swept(tiny_runs, tiny_dataset, tmp_path_factory):
     out = tmp_path_factory.mktemp("metrics")
     runs = ",".join(str(tiny_runs[name]) for name in ("pacdp_s0", "pacdp_s1", "bdp_s0", "dp_s0"))
-    argv = [f"--runs={runs}", f"--output_dir={out}", "--nll_steps=8", "--batch_size=32", "--last_k=2"]
+    data = [f"--dataset.repo_id={REPO_ID}", f"--dataset.root={tiny_dataset.root}", "--episodes=3-5"]
+    argv = [f"--runs={runs}", f"--output_dir={out}", *data, "--nll_steps=8", "--batch_size=32", "--last_k=2"]
     assert sweep.main(argv) == 0
     return out, argv
 
@@ -37,7 +38,7 @@ def test_one_row_per_run_and_checkpoint_in_csv_and_json(swept, tiny_runs):
         assert float(row["nll_bound"]) <= float(row["nll_baseline"])
         assert row["success_rate"] == ""  # off by default
     stored = json.loads((out / "metrics.json").read_text())
-    assert len(stored["rows"]) == 12 and stored["settings"]["seed"] == 0
+    assert len(stored["rows"]) == 12 and stored["settings"]["seed"] == 0 and stored["settings"]["episodes"] == "3-5"
     assert stored["rows"][0]["checkpoint"] == str(tiny_runs["pacdp_s0"] / "checkpoints" / "000100" / "pretrained_model")
 
 
@@ -74,13 +75,26 @@ def test_resume_reuses_stored_rows_and_labels_group_runs(swept, tiny_runs, monke
     assert "mine (2 runs)" in capsys.readouterr().out
 
 
+def test_a_single_checkpoint_is_a_run_of_one_on_the_same_draws(swept, tiny_runs, tmp_path):
+    out, argv = swept
+    step_dir = tiny_runs["pacdp_s0"] / "checkpoints" / f"{STEPS[-1]:06d}"
+    assert sweep.list_checkpoints(step_dir) == [(STEPS[-1], step_dir / "pretrained_model")]
+    single = tmp_path / "single"
+    assert sweep.main([f"--runs={step_dir / 'pretrained_model'}", f"--output_dir={single}", *argv[2:]]) == 0
+    [row] = json.loads((single / "metrics.json").read_text())["rows"]
+    [full] = [r for r in json.loads((out / "metrics.json").read_text())["rows"] if r["checkpoint"] == row["checkpoint"]]
+    assert row["step"] == STEPS[-1] and row["npe"] == full["npe"] and row["nll_bound"] == full["nll_bound"]
+
+
 def test_nll_baseline_is_fitted_to_the_complete_held_out_chunks(tiny_runs, tiny_dataset):
     loaded = load_policy(tiny_runs["pacdp_s1"] / "checkpoints" / "000200")
     data = EvaluationData(loaded.policy.config, REPO_ID, tiny_dataset.root, [3, 4, 5])
     result = sweep.evaluate_checkpoint(loaded, data, nll_steps=sweep.evenly_spaced_steps(100, 5))
     chunks = []
     for index in data.positions:  # by hand: normalise each window, keep those without padding
-        frame = loaded.preprocessor({k: v.unsqueeze(0) if torch.is_tensor(v) else v for k, v in data.dataset[index].items()})
+        frame = loaded.preprocessor(
+            {k: v.unsqueeze(0) if torch.is_tensor(v) else v for k, v in data.dataset[index].items()}
+        )
         if not frame["action_is_pad"].any():
             chunks.append(frame["action"].flatten())
     baseline = GaussianBaseline.fit(torch.stack(chunks))
@@ -90,7 +104,9 @@ def test_nll_baseline_is_fitted_to_the_complete_held_out_chunks(tiny_runs, tiny_
 
 
 def test_success_rate_through_lerobots_eval_loop(tiny_runs, tmp_path):
-    """The tiny policies are PushT-shaped (agent xy + 16 keypoints -> xy), so gym-pusht can roll them out."""
+    """The tiny policies are PushT-shaped (agent xy + 16 keypoints -> xy), so gym-pusht can roll them out.
+
+    Held-out episodes come from the run's own split (train_config.json) here."""
     argv = [
         f"--runs={tiny_runs['pacdp_s1']}",
         f"--output_dir={tmp_path}",

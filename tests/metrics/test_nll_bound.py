@@ -42,7 +42,9 @@ class Mixture:
 
     def entropy_per_dim(self, n: int = 200_000) -> float:
         x = self.sample(n, seed=123)
-        log_components = -0.5 * ((x[:, None] - self.means) ** 2).sum(-1) / self.s**2 - 0.5 * D * math.log(2 * math.pi * self.s**2)
+        log_components = -0.5 * ((x[:, None] - self.means) ** 2).sum(-1) / self.s**2 - 0.5 * D * math.log(
+            2 * math.pi * self.s**2
+        )
         return -(torch.logsumexp(log_components, 1) - math.log(len(self.means))).mean().item() / D
 
     def denoiser(self, alpha_bar: torch.Tensor):
@@ -69,7 +71,9 @@ def test_gaussian_data_with_its_exact_optimal_denoiser_gives_the_true_entropy():
     eigenvalues = torch.tensor([2.0, 0.5, 0.05, 0.002], dtype=torch.float64)
     mean = torch.tensor([0.3, -0.2, 0.1, 0.0], dtype=torch.float64)
     truth = GaussianBaseline(mean, eigenvalues, basis)  # N(mean, basis diag(l) basis^T)
-    chunks = (mean + (torch.randn(4000, D, generator=generator, dtype=torch.float64) * eigenvalues.sqrt()) @ basis.T).reshape(-1, *CHUNK)
+    chunks = (
+        mean + (torch.randn(4000, D, generator=generator, dtype=torch.float64) * eigenvalues.sqrt()) @ basis.T
+    ).reshape(-1, *CHUNK)
     true_entropy = truth.entropy / D
     result = bound(truth.denoiser(cosine_schedule()), chunks, cosine_schedule())
     assert result.nats_per_dim == pytest.approx(true_entropy, abs=0.01)
@@ -121,7 +125,12 @@ def test_per_step_draws_do_not_depend_on_the_batch_or_on_which_steps_are_evaluat
     denoiser = mixture.denoiser(alpha_bar)
     index = torch.arange(100, 106)
     full = nll_step_errors(denoiser, chunks, index, alpha_bar, range(100), seed=7)
-    split = torch.cat([nll_step_errors(denoiser, chunks[:2], index[:2], alpha_bar, range(100), 7), nll_step_errors(denoiser, chunks[2:], index[2:], alpha_bar, range(100), 7)])
+    split = torch.cat(
+        [
+            nll_step_errors(denoiser, chunks[:2], index[:2], alpha_bar, range(100), 7),
+            nll_step_errors(denoiser, chunks[2:], index[2:], alpha_bar, range(100), 7),
+        ]
+    )
     subset = nll_step_errors(denoiser, chunks, index, alpha_bar, [3, 50, 99], seed=7)
     torch.testing.assert_close(full, split, rtol=0, atol=0)
     torch.testing.assert_close(full[:, [3, 50, 99]], subset, rtol=0, atol=0)

@@ -2,7 +2,6 @@
 
 import pytest
 import torch
-from metrics_testing import EPISODE_LENGTHS, REPO_ID
 
 from lerobot_pacdp.metrics.checkpoints import load_policy
 from lerobot_pacdp.metrics.data import EvaluationData, split_from_train_config
@@ -14,6 +13,7 @@ from lerobot_pacdp.metrics.noise_prediction import (
     policy_denoiser,
 )
 from lerobot_pacdp.metrics.sweep import evaluate_checkpoint
+from metrics_testing import EPISODE_LENGTHS, REPO_ID
 
 
 def test_draws_depend_only_on_seed_and_example_index():
@@ -62,14 +62,14 @@ def test_npe_does_not_depend_on_the_batch_size(heldout):
 
 def test_two_checkpoints_see_identical_steps_and_noisy_inputs(tiny_runs, heldout):
     _, data = heldout
-    seen = {}
-    for name in ("000100", "000300"):
+    seen = {"000100": [], "000300": []}
+    for name, calls in seen.items():
         loaded = load_policy(tiny_runs["pacdp_s0"] / "checkpoints" / name)
-        calls = []
-        hook = loaded.policy.diffusion.unet.register_forward_pre_hook(lambda module, args: calls.append((args[0].clone(), args[1].clone())))
+        hook = loaded.policy.diffusion.unet.register_forward_pre_hook(
+            lambda module, args, calls=calls: calls.append((args[0].clone(), args[1].clone()))
+        )
         evaluate_checkpoint(loaded, data, seed=0, batch_size=16, nll=False)
         hook.remove()
-        seen[name] = calls
     assert len(seen["000100"]) == len(seen["000300"]) > 1
     for (noisy_a, steps_a), (noisy_b, steps_b) in zip(seen["000100"], seen["000300"], strict=True):
         assert torch.equal(steps_a, steps_b)

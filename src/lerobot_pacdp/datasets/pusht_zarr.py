@@ -8,16 +8,16 @@ and gym_pusht's reward / success recomputed from the block pose.
 
 import argparse
 import logging
-import shutil
 import sys
-import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from lerobot_pacdp.atomic_io import staged_directory
 from lerobot_pacdp.datasets.pusht_geometry import NUM_KEYPOINTS, keypoints_and_coverage, reward_and_success
+from lerobot_pacdp.episodes import EpisodeSelectionError, parse_episodes
 
 FPS = 10
 TASK = "Push the T-shaped block onto the T-shaped target."
@@ -184,39 +184,12 @@ def convert_pusht_zarr(
             f"{output_root} already exists; choose another output root or pass overwrite=True (--overwrite)."
         )
 
-    output_root.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{output_root.name}.", suffix=".partial", dir=output_root.parent))
-    try:
-        from tqdm import tqdm
+    from tqdm import tqdm
 
+    with staged_directory(output_root) as staging:
         shown = tqdm(selected, desc="Converting PushT episodes", unit="episode", disable=not progress)
-        _write_dataset(buffer, shown, staging / "dataset", repo_id)
-        previous = staging / "previous"
-        if output_root.exists():
-            output_root.rename(previous)
-        try:
-            (staging / "dataset").rename(output_root)
-        except BaseException:
-            if previous.exists():
-                previous.rename(output_root)
-            raise
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        _write_dataset(buffer, shown, staging, repo_id)
     return output_root
-
-
-def parse_episodes(spec: str) -> list[int]:
-    """Parse an episode selection such as "0-19", "0,1,2" or "0-4,10" (ranges are inclusive)."""
-    indices: list[int] = []
-    for part in spec.split(","):
-        first, dash, last = part.strip().partition("-")
-        try:
-            indices.extend(range(int(first), int(last) + 1) if dash else [int(first)])
-        except ValueError:
-            raise PushTConversionError(
-                f"cannot parse episode selection {spec!r}; use a range like 0-19 or a list like 0,1,2."
-            ) from None
-    return indices
 
 
 def _quiet_library_output() -> None:
@@ -248,7 +221,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         root = convert_pusht_zarr(
             args.zarr, args.output_root, args.repo_id, episodes, args.overwrite, progress=True
         )
-    except PushTConversionError as exc:
+    except (PushTConversionError, EpisodeSelectionError) as exc:
         print(f"pacdp-convert-pusht: error: {exc}", file=sys.stderr)
         return 2
     print(f"Wrote the LeRobotDataset {args.repo_id} to {root}")

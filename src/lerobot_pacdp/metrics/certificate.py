@@ -24,6 +24,7 @@ or a prior learnt on a disjoint split (see `lerobot_pacdp.metrics.learned_prior`
 k certified configurations needs delta / k.
 """
 
+import copy
 import json
 import math
 import sys
@@ -35,13 +36,15 @@ import draccus
 import torch
 from torch import Tensor
 
+from lerobot_pacdp.atomic_io import write_text_atomic
 from lerobot_pacdp.bayesian_layers import kl_divergence, sampled_weights
 from lerobot_pacdp.metrics.checkpoints import LoadedPolicy, MetricsError, UnsupportedPolicyError, load_policy, run_cli
-from lerobot_pacdp.metrics.data import DatasetArgs, EvaluationData, resolve_split
+from lerobot_pacdp.metrics.data import DatasetArgs, EvalBatch, EvaluationData, resolve_split
 from lerobot_pacdp.metrics.kl_inverse import kl_inverse
 from lerobot_pacdp.metrics.learned_prior import check_disjoint_from_prior
 from lerobot_pacdp.metrics.noise_prediction import (
     WEIGHT_STREAM,
+    Denoiser,
     alphas_cumprod,
     example_generator,
     noise_prediction_errors,
@@ -82,7 +85,12 @@ def is_vacuous(bound: float, trivial_risk: float) -> bool:
 
 
 def pac_bayes_certificate(
-    sample_risks: Sequence[float], kl: float, num_demos: int, delta: float, delta_prime: float, trivial_risk: float = 1.0
+    sample_risks: Sequence[float],
+    kl: float,
+    num_demos: int,
+    delta: float,
+    delta_prime: float,
+    trivial_risk: float = 1.0,
 ) -> PacBayesCertificate:
     """The two-stage certificate from the m per-sample empirical risks 1/N sum_n l(w_j, n)."""
     m = len(sample_risks)
@@ -133,6 +141,12 @@ def _zero_denoiser(noisy: Tensor, steps: Tensor) -> Tensor:
     return torch.zeros_like(noisy)
 
 
+def clipped_losses(denoiser: Denoiser, batch: EvalBatch, alpha_bar: Tensor, seed: int, clip: float) -> Tensor:
+    """min(MSE_i, C) / C per example, at the example's seeded (t, eps) draw, on the CPU."""
+    errors = noise_prediction_errors(denoiser, batch.actions, batch.valid, batch.index, alpha_bar, seed)
+    return errors.clamp(max=clip).cpu() / clip
+
+
 @torch.no_grad()
 def clipped_demo_losses(
     loaded: LoadedPolicy,
@@ -158,17 +172,12 @@ def clipped_demo_losses(
     episodes = []
     for batch in data.batches(loaded, batch_size, desc=desc):
         denoiser = policy_denoiser(policy, batch.global_cond)
-
-        def clipped(denoise) -> Tensor:
-            errors = noise_prediction_errors(denoise, batch.actions, batch.valid, batch.index, alpha_bar, seed)
-            return errors.clamp(max=clip).cpu() / clip
-
-        columns["mean"].append(clipped(denoiser))
-        columns["trivial"].append(clipped(_zero_denoiser))
+        columns["mean"].append(clipped_losses(denoiser, batch, alpha_bar, seed, clip))
+        columns["trivial"].append(clipped_losses(_zero_denoiser, batch, alpha_bar, seed, clip))
         samples = []
         for j in range(num_weight_samples):
             with sampled_weights(policy.unet, example_generator(weight_seed, j, WEIGHT_STREAM, device)):
-                samples.append(clipped(denoiser))
+                samples.append(clipped_losses(denoiser, batch, alpha_bar, seed, clip))
         if samples:
             columns["samples"].append(torch.stack(samples, dim=1))
         episodes.append(batch.episode)
@@ -188,25 +197,33 @@ class CertificateReport:
     held_out: HeldOutCertificate | None = None
 
     def summary(self) -> str:
-        pb = self.pac_bayes
+        pb, clip = self.pac_bayes, f"{self.clip:g}"
         lines = [
-            f"PAC-Bayes certificate for {self.checkpoint} (loss: per-demo mean of min(MSE, {self.clip:g})/{self.clip:g})",
+            f"PAC-Bayes certificate for {self.checkpoint} (loss: per-demo mean of min(MSE, {clip}) / {clip})",
             f"  N = {pb.num_demos} demonstrations, m = {pb.num_weight_samples} weight samples, KL(Q||P) = {pb.kl:.6g}",
-            f"  empirical risk of Q (MC)  R_m    = {pb.empirical_risk:.5f}   (posterior mean: {self.train_risk_mean_network:.5f})",
-            f"  stage 1 kl^-1(R_m, ln(2/delta')/m)              = {pb.stage1:.5f}",
-            f"  stage 2 kl^-1(stage1, (KL+ln(2sqrt(N)/delta))/N) = {pb.stage2:.5f}   <- certificate, w.p. >= {pb.confidence:.3f}",
-            f"  paper Eq. 5 (relaxed) at the stage-1 risk       = {pb.relaxed_eq5:.5f}",
-            f"  trivial predictor (eps_hat = 0) clipped risk    = {pb.trivial_risk:.5f}",
+            f"  empirical risk of Q (Monte Carlo) R_m             = {pb.empirical_risk:.5f}"
+            f"   (posterior mean: {self.train_risk_mean_network:.5f})",
+            f"  stage 1 kl^-1(R_m, ln(2/delta')/m)                = {pb.stage1:.5f}",
+            f"  stage 2 kl^-1(stage 1, (KL+ln(2 sqrt(N)/delta))/N) = {pb.stage2:.5f}"
+            f"   <- certificate, w.p. >= {pb.confidence:.3f}",
+            f"  paper Eq. 5 (relaxed) at the stage-1 risk         = {pb.relaxed_eq5:.5f}",
+            f"  trivial predictor (eps_hat = 0) clipped risk      = {pb.trivial_risk:.5f}",
             "  VACUOUS: the certificate is no better than the trivial bound." if pb.vacuous else "  non-vacuous.",
         ]
         if self.held_out is not None:
             ho = self.held_out
             lines += [
                 f"Held-out bound for the posterior-mean network on {ho.num_demos} unseen demonstrations:",
-                f"  R_test = {ho.risk:.5f}, kl^-1(R_test, ln(1/delta)/n_test) = {ho.bound:.5f}, w.p. >= {ho.confidence:.3f}"
-                + ("  (VACUOUS)" if ho.vacuous else ""),
+                f"  R_test = {ho.risk:.5f}, kl^-1(R_test, ln(1/delta)/n_test) = {ho.bound:.5f},"
+                f" w.p. >= {ho.confidence:.3f}" + ("  (VACUOUS)" if ho.vacuous else ""),
             ]
         return "\n".join(lines)
+
+
+def exact_kl(unet: torch.nn.Module) -> float:
+    """KL(Q||P) from the saved mu, rho and prior tensors, with float64 elementwise terms (on a float64 copy):
+    training's float32 terms are rounded at ~1e-7 relative each, enough to turn a KL of 0 slightly negative."""
+    return kl_divergence(copy.deepcopy(unet).double()).item()
 
 
 def require_pacdp(loaded: LoadedPolicy) -> None:
@@ -235,9 +252,16 @@ def certify(
     if not clip > 0 or num_weight_samples < 1:
         raise MetricsError(f"need clip > 0 and num_weight_samples >= 1, got {clip} and {num_weight_samples}")
     delta = loaded.policy.config.delta if delta is None else delta
-    kl = kl_divergence(loaded.policy.unet).item()
+    kl = exact_kl(loaded.policy.unet)
     train = clipped_demo_losses(
-        loaded, train_data, clip, seed, num_weight_samples, seed, batch_size, desc="certificate (training demos)" if progress else None
+        loaded,
+        train_data,
+        clip,
+        seed,
+        num_weight_samples,
+        seed,
+        batch_size,
+        desc="certificate (training demos)" if progress else None,
     )
     trivial = train["trivial"].mean().item()
     report = CertificateReport(
@@ -245,11 +269,15 @@ def certify(
         clip=clip,
         seed=seed,
         train_episodes=train_data.episodes,
-        pac_bayes=pac_bayes_certificate(train["samples"].mean(0).tolist(), kl, len(train["mean"]), delta, delta_prime, trivial),
+        pac_bayes=pac_bayes_certificate(
+            train["samples"].mean(0).tolist(), kl, len(train["mean"]), delta, delta_prime, trivial
+        ),
         train_risk_mean_network=train["mean"].mean().item(),
     )
     if heldout_data is not None:
-        held = clipped_demo_losses(loaded, heldout_data, clip, seed, batch_size=batch_size, desc="held-out demos" if progress else None)
+        held = clipped_demo_losses(
+            loaded, heldout_data, clip, seed, batch_size=batch_size, desc="held-out demos" if progress else None
+        )
         report.heldout_episodes = heldout_data.episodes
         report.held_out = held_out_certificate(held["mean"].tolist(), delta, held["trivial"].mean().item())
     return report
@@ -268,10 +296,11 @@ class CertifyConfig:
     clip: float = 1.0  # C: per-example MSE clipped at C, divided by C
     num_weight_samples: int = 100  # m
     delta: float | None = None  # default: the checkpoint's config.delta
-    delta_prime: float = 0.01
-    seed: int = 0
+    delta_prime: float = 0.01  # confidence of the Monte Carlo stage 1
+    seed: int = 0  # per-example (t, eps) draws and the m weight samples
     batch_size: int = 256
     frame_stride: int = 1  # use every k-th window (in episode order)
+    num_workers: int = 0  # DataLoader workers for the one-off read of the windows
     device: str | None = None
     output: Path | None = None  # write the report as JSON here
     # A prior built by pacdp-learned-prior: refuse to certify on the demonstrations it was trained on.
@@ -288,8 +317,12 @@ def _certify_main(argv: Sequence[str] | None) -> int:
     if cfg.prior is not None:
         check_disjoint_from_prior(cfg.prior, split.train_episodes + split.heldout_episodes)
     config = loaded.policy.config
-    train = EvaluationData(config, split.repo_id, split.root, split.train_episodes, cfg.frame_stride)
-    test = EvaluationData(config, split.repo_id, split.root, split.heldout_episodes, cfg.frame_stride) if split.heldout_episodes else None
+
+    def data(episodes: list[int]) -> EvaluationData:
+        return EvaluationData(config, split.repo_id, split.root, episodes, cfg.frame_stride, cfg.num_workers)
+
+    train = data(split.train_episodes)
+    test = data(split.heldout_episodes) if split.heldout_episodes else None
     report = certify(
         loaded,
         train,
@@ -303,8 +336,7 @@ def _certify_main(argv: Sequence[str] | None) -> int:
     )
     print(report.summary())
     if cfg.output is not None:
-        cfg.output.parent.mkdir(parents=True, exist_ok=True)
-        cfg.output.write_text(json.dumps(asdict(report), indent=2))
+        write_text_atomic(cfg.output, json.dumps(asdict(report), indent=2))
         print(f"wrote {cfg.output}")
     return 0
 

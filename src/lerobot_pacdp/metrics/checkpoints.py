@@ -106,12 +106,21 @@ def load_policy(path: str | Path, device: str | None = None) -> LoadedPolicy:
 
 
 def list_checkpoints(run_dir: str | Path) -> list[tuple[int, Path]]:
-    """(step, pretrained_model dir) of every numbered checkpoint of a lerobot-train output dir, by step."""
+    """(step, pretrained_model dir) of every numbered checkpoint of a lerobot-train output dir, by step.
+
+    A single checkpoint (`.../checkpoints/<step>[/pretrained_model]` or a `save_pretrained` directory)
+    is a run of one checkpoint; its step is the `<step>` directory's number, else 0.
+    """
     run_dir = Path(run_dir)
     checkpoints_dir = run_dir / "checkpoints"
     if not checkpoints_dir.is_dir():
+        if run_dir.exists() and any((d / "config.json").is_file() for d in (run_dir, run_dir / PRETRAINED_DIRNAME)):
+            pretrained_dir = resolve_pretrained_dir(run_dir)
+            step_name = pretrained_dir.parent.name if pretrained_dir.name == PRETRAINED_DIRNAME else ""
+            return [(int(step_name) if step_name.isdigit() else 0, pretrained_dir)]
         raise CheckpointNotFoundError(
-            f"{run_dir} is not a lerobot-train output directory: {checkpoints_dir} does not exist."
+            f"{run_dir} is neither a lerobot-train output directory ({checkpoints_dir} does not exist) "
+            "nor a checkpoint (no config.json)."
         )
     found = sorted(
         (int(step_dir.name), step_dir / PRETRAINED_DIRNAME)

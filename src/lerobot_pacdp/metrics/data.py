@@ -5,22 +5,24 @@ does), selected like lerobot-train's `EpisodeAwareSampler` (the last `drop_n_las
 episode are never sampled) and normalised with the checkpoint's own saved preprocessor.
 """
 
+import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from lerobot.configs.policies import PreTrainedConfig
+from lerobot.configs.train import TrainPipelineConfig
 from lerobot.datasets import EpisodeAwareSampler
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
-from lerobot.datasets.factory import resolve_delta_timestamps
+from lerobot.datasets.factory import make_train_eval_datasets, resolve_delta_timestamps
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils.constants import ACTION, OBS_IMAGES
 from lerobot.utils.feature_utils import dataset_to_policy_features
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from lerobot_pacdp.datasets.pusht_zarr import PushTConversionError, parse_episodes
+from lerobot_pacdp.episodes import EpisodeSelectionError, parse_episodes
 from lerobot_pacdp.metrics.checkpoints import DatasetMismatchError, LoadedPolicy, MetricsError
 
 
@@ -40,7 +42,7 @@ def episodes_from_spec(spec: str) -> list[int]:
         return []
     try:
         return parse_episodes(spec)
-    except PushTConversionError as exc:
+    except EpisodeSelectionError as exc:
         raise MetricsError(str(exc)) from None
 
 
@@ -51,19 +53,22 @@ def split_from_train_config(pretrained_dir: Path, root: Path | None = None) -> E
     task are held out), so the metrics use exactly the episodes lerobot-train's `eval_loss` used. No
     episodes are held out when the run used `dataset.eval_split = 0`.
     """
-    from lerobot.configs.train import TrainPipelineConfig
-    from lerobot.datasets.factory import make_train_eval_datasets
-
     config_file = pretrained_dir / "train_config.json"
     if not config_file.is_file():
         raise MetricsError(
             f"{pretrained_dir} has no train_config.json to read the run's dataset and held-out split from; "
             "pass --dataset.repo_id, --dataset.root and --episodes explicitly."
         )
-    train_config = TrainPipelineConfig.from_pretrained(config_file)
-    if root is not None:
-        train_config.dataset.root = str(root)
-    train_dataset, eval_dataset = make_train_eval_datasets(train_config)
+    try:  # LeRobot raises many exception types for an unparsable config or an unreachable dataset
+        train_config = TrainPipelineConfig.from_pretrained(config_file)
+        if root is not None:
+            train_config.dataset.root = str(root)
+        train_dataset, eval_dataset = make_train_eval_datasets(train_config)
+    except Exception as exc:
+        raise MetricsError(
+            f"cannot rebuild the run's train / held-out split from {config_file}: {exc}. Pass --dataset.root "
+            "(if the dataset moved) or the episodes explicitly."
+        ) from None
     return EpisodeSplit(
         repo_id=train_config.dataset.repo_id,
         root=Path(train_config.dataset.root) if train_config.dataset.root else None,
@@ -101,7 +106,9 @@ def check_features(config: PreTrainedConfig, meta: LeRobotDatasetMetadata, where
         if key not in available:
             problems.append(f"{key!r} is missing")
         elif tuple(available[key].shape) != tuple(feature.shape):
-            problems.append(f"{key!r} has shape {tuple(available[key].shape)}, the policy expects {tuple(feature.shape)}")
+            problems.append(
+                f"{key!r} has shape {tuple(available[key].shape)}, the policy expects {tuple(feature.shape)}"
+            )
     if problems:
         raise DatasetMismatchError(
             f"the dataset {where} does not match the policy: {'; '.join(problems)}. Evaluate the checkpoint on "
@@ -121,7 +128,12 @@ class EvalBatch:
 
 
 class EvaluationData:
-    """Windowed frames of `episodes` of a LeRobotDataset, for one policy configuration."""
+    """Windowed frames of `episodes` of a LeRobotDataset, for one policy configuration.
+
+    With `cache` (default: when the policy uses no images) the raw windows are read once and kept in
+    memory: LeRobot's windowed reads (~10 ms a window on a CPU) dominate the cost of evaluating a
+    state-based U-Net, and a sweep evaluates the same windows for every checkpoint.
+    """
 
     def __init__(
         self,
@@ -130,6 +142,8 @@ class EvaluationData:
         root: Path | str | None,
         episodes: Sequence[int],
         frame_stride: int = 1,
+        num_workers: int = 0,
+        cache: bool | None = None,
     ):
         if frame_stride < 1:
             raise MetricsError(f"frame_stride must be >= 1, got {frame_stride}")
@@ -160,19 +174,35 @@ class EvaluationData:
             absolute_to_relative_idx=self.dataset.absolute_to_relative_idx,
         )
         self.positions = sampler.indices[::frame_stride]
+        self.num_workers = num_workers
+        self.cache = not config.image_features if cache is None else cache
+        self._windows: dict[str, Tensor] | None = None
 
     def __len__(self) -> int:
         return len(self.positions)
 
-    def batches(
-        self, loaded: LoadedPolicy, batch_size: int = 256, num_workers: int = 0, desc: str | None = None
-    ) -> Iterator[EvalBatch]:
+    def _loader(self, batch_size: int) -> torch.utils.data.DataLoader:
+        return torch.utils.data.DataLoader(
+            self.dataset, batch_size=batch_size, sampler=self.positions, num_workers=self.num_workers
+        )
+
+    def _raw_batches(self, batch_size: int) -> Iterator[dict]:
+        if not self.cache:
+            yield from self._loader(batch_size)
+            return
+        if self._windows is None:
+            chunks = list(tqdm(self._loader(1024), desc="reading windows", leave=False))
+            self._windows = {k: torch.cat([c[k] for c in chunks]) for k, v in chunks[0].items() if torch.is_tensor(v)}
+        for start in range(0, len(self), batch_size):
+            yield {key: value[start : start + batch_size] for key, value in self._windows.items()}
+
+    def batches(self, loaded: LoadedPolicy, batch_size: int = 256, desc: str | None = None) -> Iterator[EvalBatch]:
         """Normalised batches with the U-Net's global conditioning computed by `loaded.policy`."""
         policy = loaded.policy
-        loader = torch.utils.data.DataLoader(
-            self.dataset, batch_size=batch_size, sampler=self.positions, num_workers=num_workers
-        )
-        for raw in tqdm(loader, desc=desc, leave=False, disable=desc is None):
+        raw_batches = self._raw_batches(batch_size)
+        for raw in tqdm(
+            raw_batches, desc=desc, total=math.ceil(len(self) / batch_size), leave=False, disable=desc is None
+        ):
             batch = loaded.preprocessor(raw)
             if policy.config.image_features:  # as DiffusionPolicy.forward stacks the cameras
                 batch[OBS_IMAGES] = torch.stack([batch[key] for key in policy.config.image_features], dim=-4)

@@ -17,9 +17,10 @@ Recipe (split A = demos 0-69, split B = demos 70-199 here):
 4. Certify on split B's training demonstrations (and bound the mean network on B's held-out ones):
    pacdp-certify --checkpoint=outputs/pacdp_B/checkpoints/last/pretrained_model --prior=outputs/prior_A_pacdp
 
-`learned_prior.json` in the built directory records split A's training episodes, and `pacdp-certify
---prior` refuses to certify on any of them. Caveat: LeRobot's normalisation stats are computed over the
-whole dataset (A and B); for a strictly B-independent prior, build the dataset of split A alone.
+`learned_prior.json` in the built directory records split A's episodes (its run's training and held-out
+ones), and `pacdp-certify --prior` refuses to certify on, or test on, any of them. Caveat: LeRobot's
+normalisation stats are computed over the whole dataset (A and B); for a strictly B-independent prior,
+build the dataset of split A alone.
 """
 
 import json
@@ -34,6 +35,7 @@ import draccus
 from lerobot.configs.policies import PreTrainedConfig
 from safetensors.torch import load_file
 
+from lerobot_pacdp.atomic_io import staged_directory
 from lerobot_pacdp.bayesian_layers import kl_divergence
 from lerobot_pacdp.configuration_pacdp import PacdpConfig
 from lerobot_pacdp.metrics.checkpoints import (
@@ -118,18 +120,25 @@ def build_learned_prior(
     if kl != 0.0:
         raise AssertionError(f"KL(Q||P) of the freshly built prior checkpoint is {kl}, expected exactly 0")
 
+    with staged_directory(output_dir) as staging:
+        _write_prior_checkpoint(policy, source_dir, source_type, staging)
+    return output_dir
+
+
+def _write_prior_checkpoint(policy: PacdpPolicy, source_dir: Path, source_type: str, output_dir: Path) -> None:
+    """The prior checkpoint, the source's processors and the provenance record (which episodes it saw)."""
     policy.save_pretrained(output_dir)
     for pattern in PROCESSOR_PATTERNS:
         for path in source_dir.glob(pattern):
             shutil.copy2(path, output_dir / path.name)
-    try:
-        prior_episodes = split_from_train_config(source_dir).train_episodes
+    try:  # the split-A run's training and held-out episodes (held-out ones may have guided model selection)
+        split = split_from_train_config(source_dir)
+        prior_episodes = sorted(split.train_episodes + split.heldout_episodes)
     except MetricsError as exc:
-        logger.warning("cannot record the prior's training episodes (%s); `pacdp-certify --prior` cannot check the split.", exc)
+        logger.warning("cannot record the prior's episodes (%s); `pacdp-certify --prior` cannot check the split.", exc)
         prior_episodes = None
-    provenance = {"source": str(source_dir), "source_type": source_type, "prior_train_episodes": prior_episodes}
+    provenance = {"source": str(source_dir), "source_type": source_type, "prior_episodes": prior_episodes}
     (output_dir / PROVENANCE_FILE).write_text(json.dumps(provenance, indent=2))
-    return output_dir
 
 
 def check_disjoint_from_prior(prior_dir: str | Path, certified_episodes: Sequence[int]) -> None:
@@ -137,16 +146,16 @@ def check_disjoint_from_prior(prior_dir: str | Path, certified_episodes: Sequenc
     provenance_file = Path(prior_dir) / PROVENANCE_FILE
     if not provenance_file.is_file():
         raise CheckpointNotFoundError(f"{prior_dir} has no {PROVENANCE_FILE}: it was not built by pacdp-learned-prior.")
-    prior_episodes = json.loads(provenance_file.read_text())["prior_train_episodes"]
+    prior_episodes = json.loads(provenance_file.read_text())["prior_episodes"]
     if prior_episodes is None:
         raise MetricsError(
-            f"{provenance_file} does not record the prior's training episodes; check the split by hand and "
-            "certify without --prior."
+            f"{provenance_file} does not record the prior's episodes; check the split by hand and certify "
+            "without --prior."
         )
     overlap = sorted(set(prior_episodes) & set(certified_episodes))
     if overlap:
         raise MetricsError(
-            f"the prior of {prior_dir} was trained on {len(overlap)} of the certified demonstrations "
+            f"the prior of {prior_dir} was learnt from {len(overlap)} of the certified demonstrations "
             f"(e.g. {overlap[:10]}); certify on a split disjoint from the prior's."
         )
 

@@ -15,6 +15,7 @@ models only. Rows already in `metrics.json` with the same settings are reused (`
 """
 
 import csv
+import io
 import json
 import logging
 import math
@@ -29,10 +30,16 @@ import torch
 from lerobot.envs.configs import EnvConfig
 from tqdm.auto import tqdm
 
+from lerobot_pacdp.atomic_io import write_text_atomic
 from lerobot_pacdp.metrics.checkpoints import LoadedPolicy, MetricsError, list_checkpoints, load_policy, run_cli
 from lerobot_pacdp.metrics.data import DatasetArgs, EvaluationData, resolve_split
 from lerobot_pacdp.metrics.nll_bound import NllAccumulator, NllBound, nll_step_errors
-from lerobot_pacdp.metrics.noise_prediction import MeanWithError, alphas_cumprod, noise_prediction_errors, policy_denoiser
+from lerobot_pacdp.metrics.noise_prediction import (
+    MeanWithError,
+    alphas_cumprod,
+    noise_prediction_errors,
+    policy_denoiser,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -84,7 +91,9 @@ def evaluate_checkpoint(
     npe_errors = []
     for batch in data.batches(loaded, batch_size, desc=desc):
         denoiser = policy_denoiser(policy, batch.global_cond)
-        npe_errors.append(noise_prediction_errors(denoiser, batch.actions, batch.valid, batch.index, alpha_bar, seed).cpu())
+        npe_errors.append(
+            noise_prediction_errors(denoiser, batch.actions, batch.valid, batch.index, alpha_bar, seed).cpu()
+        )
         complete = batch.valid.all(dim=1)
         if accumulator is not None and complete.any():
             actions, index = batch.actions[complete], batch.index[complete]
@@ -179,7 +188,9 @@ def plot_metrics(rows: list[dict], output_dir: Path) -> list[Path]:
             steps = sorted(by_step)
             stats = [_mean_std(by_step[s]) for s in steps]
             (line,) = ax.plot(steps, [m for m, _ in stats], marker="o", markersize=3, label=label)
-            ax.fill_between(steps, [m - s for m, s in stats], [m + s for m, s in stats], color=line.get_color(), alpha=0.2)
+            ax.fill_between(
+                steps, [m - s for m, s in stats], [m + s for m, s in stats], color=line.get_color(), alpha=0.2
+            )
         baselines = _finite([row["nll_baseline"] for row in rows]) if metric == "nll_bound" else []
         if baselines:  # what a denoiser no better than the Gaussian gets (the paper's -3.24 plateau on PushT)
             ax.axhline(sum(baselines) / len(baselines), color="gray", linestyle="--", label="Gaussian baseline $h_G/d$")
@@ -211,23 +222,24 @@ def plot_metrics(rows: list[dict], output_dir: Path) -> list[Path]:
 class SweepConfig:
     """`pacdp-metrics` options (LeRobot-style `--flag=value`; `--config_path=file.json` works too)."""
 
-    runs: str = ""  # comma-separated lerobot-train output dirs (each with checkpoints/<step>/pretrained_model)
+    runs: str = ""  # comma-separated lerobot-train output dirs (checkpoints/<step>/pretrained_model) or checkpoints
     labels: str | None = None  # comma-separated method label per run (default: DP / BDP / PAC-DP)
     output_dir: Path = Path("outputs/metrics")
     dataset: DatasetArgs = field(default_factory=DatasetArgs)  # default: each run's dataset
     episodes: str | None = None  # held-out episodes, e.g. "140-199" (default: each run's eval split)
     seed: int = 0  # the per-example draws of t and eps
     batch_size: int = 256
-    nll: bool = True
+    nll: bool = True  # false: NPE (and success rate) only
     nll_steps: int | None = None  # evaluate the NLL bound at this many diffusion steps (default: all)
     frame_stride: int = 1  # use every k-th held-out window (in episode order)
-    last_k: int = 10
+    num_workers: int = 0  # DataLoader workers for the (one-off, cached) read of the held-out windows
+    last_k: int = 10  # summary: mean over each run's last k checkpoints
     device: str | None = None
-    resume: bool = True
+    resume: bool = True  # reuse rows of metrics.json computed with the same settings
     # Success rate through LeRobot's evaluation, off unless an env is given (e.g. --env.type=pusht).
     env: EnvConfig | None = None
-    eval_episodes: int = 50
-    eval_batch_size: int = 10
+    eval_episodes: int = 50  # rollouts per checkpoint
+    eval_batch_size: int = 10  # environments stepped in parallel
 
 
 def _settings(cfg: SweepConfig) -> dict:
@@ -238,11 +250,26 @@ def _settings(cfg: SweepConfig) -> dict:
     return settings
 
 
-def _run_data(cfg: SweepConfig, loaded: LoadedPolicy) -> EvaluationData:
+def _run_data(cfg: SweepConfig, loaded: LoadedPolicy, shared: dict[tuple, EvaluationData]) -> EvaluationData:
+    """The run's held-out windows; runs with the same data and windowing share one (cached) object."""
     split = resolve_split(loaded.path, cfg.dataset, "", cfg.episodes)
     if not split.heldout_episodes:
         raise MetricsError(f"the run of {loaded.path} held out no episodes (eval_split = 0); pass --episodes.")
-    return EvaluationData(loaded.policy.config, split.repo_id, split.root, split.heldout_episodes, cfg.frame_stride)
+    config = loaded.policy.config
+    key = (
+        split.repo_id,
+        str(split.root),
+        tuple(split.heldout_episodes),
+        tuple(config.observation_delta_indices or ()),
+        tuple(config.action_delta_indices or ()),
+        getattr(config, "drop_n_last_frames", 0),
+        tuple(sorted(config.input_features)),
+    )
+    if key not in shared:
+        shared[key] = EvaluationData(
+            config, split.repo_id, split.root, split.heldout_episodes, cfg.frame_stride, cfg.num_workers
+        )
+    return shared[key]
 
 
 def run_sweep(cfg: SweepConfig) -> tuple[list[dict], dict]:
@@ -269,7 +296,7 @@ def run_sweep(cfg: SweepConfig) -> tuple[list[dict], dict]:
 
         envs = make_env(cfg.env, n_envs=cfg.eval_batch_size, use_async_envs=False)
     rows: list[dict] = []
-    heldout_sets = {}
+    heldout_sets, shared_data = {}, {}
     try:
         for run, label in zip(runs, labels, strict=True):
             data = None
@@ -279,7 +306,7 @@ def run_sweep(cfg: SweepConfig) -> tuple[list[dict], dict]:
                     continue
                 loaded = load_policy(ckpt, cfg.device)
                 if data is None:
-                    data = _run_data(cfg, loaded)
+                    data = _run_data(cfg, loaded, shared_data)
                     heldout_sets[str(run)] = data.episodes
                 nll_steps = evenly_spaced_steps(len(alphas_cumprod(loaded.policy)), cfg.nll_steps)
                 result = evaluate_checkpoint(
@@ -298,7 +325,9 @@ def run_sweep(cfg: SweepConfig) -> tuple[list[dict], dict]:
                         "nll_bound": result.nll.nats_per_dim if result.nll else None,
                         "nll_baseline": result.nll.baseline_nats_per_dim if result.nll else None,
                         "nll_examples": result.nll.num_examples if result.nll else None,
-                        "success_rate": success_rate(loaded, envs, cfg.env, cfg.eval_episodes, cfg.seed) if envs else None,
+                        "success_rate": success_rate(loaded, envs, cfg.env, cfg.eval_episodes, cfg.seed)
+                        if envs
+                        else None,
                     }
                 )
                 _write_tables(rows, settings, cfg.output_dir)
@@ -311,23 +340,26 @@ def run_sweep(cfg: SweepConfig) -> tuple[list[dict], dict]:
         logger.warning("the runs were evaluated on different held-out episodes; their curves are not paired.")
     _write_tables(rows, settings, cfg.output_dir)
     summary = summarize(rows, cfg.last_k)
-    (cfg.output_dir / "summary.json").write_text(json.dumps({"last_k": cfg.last_k, "methods": summary}, indent=2))
+    write_text_atomic(cfg.output_dir / "summary.json", json.dumps({"last_k": cfg.last_k, "methods": summary}, indent=2))
     plot_metrics(rows, cfg.output_dir)
     return rows, summary
 
 
 def _write_tables(rows: list[dict], settings: dict, output_dir: Path) -> None:
-    with open(output_dir / "metrics.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
-        writer.writeheader()
-        writer.writerows({k: ("" if row[k] is None else row[k]) for k in CSV_COLUMNS} for row in rows)
-    (output_dir / "metrics.json").write_text(json.dumps({"settings": settings, "rows": rows}, indent=2))
+    table = io.StringIO()
+    writer = csv.DictWriter(table, fieldnames=CSV_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows({k: ("" if row[k] is None else row[k]) for k in CSV_COLUMNS} for row in rows)
+    write_text_atomic(output_dir / "metrics.csv", table.getvalue())
+    write_text_atomic(output_dir / "metrics.json", json.dumps({"settings": settings, "rows": rows}, indent=2))
 
 
 def _main(argv: Sequence[str] | None) -> int:
     cfg = draccus.parse(config_class=SweepConfig, args=argv)
     rows, summary = run_sweep(cfg)
-    print(f"evaluated {len(rows)} checkpoints; wrote {cfg.output_dir}/metrics.csv, metrics.json, summary.json and plots")
+    print(
+        f"evaluated {len(rows)} checkpoints; wrote {cfg.output_dir}/metrics.csv, metrics.json, summary.json and plots"
+    )
     print(format_summary(summary, cfg.last_k))
     return 0
 

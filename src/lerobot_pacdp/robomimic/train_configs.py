@@ -1,0 +1,112 @@
+"""The `lerobot-train --config_path` files in `configs/robomimic/`, generated from the task table.
+
+- `<task>.json`: the paper's setting: PAC-DP with lambda per task (1e-5 Lift/Can/ToolHang, 1e-6
+  Square/Transport), rho = -4.5, 250k steps (500k for Transport/ToolHang), on the 200 `ph` demos split
+  140 train / 60 held out (`episodes=[0..199]`, `eval_split=0.3`), evaluated with
+  `--env.robosuite_compat=1.4` (the released files were recorded with robosuite <= 1.4).
+- `<task>_cpu.json` (Lift, Can, Square): a CPU smoke preset for scripted demos (robosuite 1.5 data,
+  `robosuite_compat=1.5`): a 4.5M-parameter U-Net (down_dims 64/128/256), batch 64, 3000 steps.
+
+Regenerate after changing the task table: `python -m lerobot_pacdp.robomimic.train_configs [configs/robomimic]`
+(a test checks the files agree with the table).
+"""
+
+import json
+import sys
+from pathlib import Path
+
+from lerobot_pacdp.robomimic import compat
+from lerobot_pacdp.robomimic.tasks import PAPER_EVAL_FRACTION, PAPER_NUM_DEMOS, PAPER_PRIOR_RHO, TASKS, get_task
+
+PAPER_DELTA = 0.025
+CPU_TASKS = ("lift", "can", "square")  # the tasks with scripted experts
+
+
+def dataset_repo_id(task: str, scripted: bool = False) -> str:
+    return f"local/robomimic_{get_task(task).name}{'_scripted' if scripted else ''}"
+
+
+def paper_config(task: str) -> dict:
+    t = get_task(task)
+    return {
+        "dataset": {
+            "repo_id": dataset_repo_id(t.name),
+            "episodes": list(range(PAPER_NUM_DEMOS)),
+            "eval_split": PAPER_EVAL_FRACTION,
+        },
+        "env": {"type": "robomimic", "task": t.name, "robosuite_compat": compat.LEGACY},
+        "policy": {
+            "type": "pacdp",
+            "kl_weight": t.kl_weight,
+            "prior_rho": PAPER_PRIOR_RHO,
+            "delta": PAPER_DELTA,
+            "inference_mode": "mean",
+            "push_to_hub": False,
+        },
+        "steps": t.train_steps,
+        "batch_size": 256,
+        "save_freq": 5000,
+        "eval_steps": 5000,
+        "env_eval_freq": 0,
+        "log_freq": 200,
+        "seed": 1000,
+        "num_workers": 4,
+    }
+
+
+def cpu_config(task: str) -> dict:
+    t = get_task(task)
+    return {
+        "dataset": {"repo_id": dataset_repo_id(t.name, scripted=True), "eval_split": 0.1},
+        "env": {"type": "robomimic", "task": t.name, "robosuite_compat": compat.NATIVE},
+        "policy": {
+            "type": "pacdp",
+            "kl_weight": t.kl_weight,
+            "prior_rho": PAPER_PRIOR_RHO,
+            "delta": PAPER_DELTA,
+            "down_dims": [64, 128, 256],
+            "diffusion_step_embed_dim": 64,
+            "device": "cpu",
+            "push_to_hub": False,
+        },
+        "steps": 3000,
+        "batch_size": 64,
+        "save_freq": 1000,
+        "eval_steps": 500,
+        "env_eval_freq": 0,
+        "log_freq": 100,
+        "seed": 1000,
+        "num_workers": 0,
+    }
+
+
+def expected_files() -> dict[str, dict]:
+    """{file name: content} of every config file in configs/robomimic/."""
+    files = {f"{name}.json": paper_config(name) for name in TASKS}
+    files.update({f"{name}_cpu.json": cpu_config(name) for name in CPU_TASKS})
+    return files
+
+
+def render(content: dict) -> str:
+    """JSON text of a config file (episode lists on one line, like configs/pusht/)."""
+    text = json.dumps(content, indent=2)
+    if "episodes" in content.get("dataset", {}):
+        one_line = json.dumps(content["dataset"]["episodes"])
+        text = text.replace(json.dumps(content["dataset"]["episodes"], indent=2).replace("\n", "\n    "), one_line)
+    return text + "\n"
+
+
+def write_all(directory: str | Path) -> list[Path]:
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, content in expected_files().items():
+        path = directory / name
+        path.write_text(render(content))
+        written.append(path)
+    return written
+
+
+if __name__ == "__main__":
+    for written in write_all(sys.argv[1] if len(sys.argv) > 1 else "configs/robomimic"):
+        print(written)

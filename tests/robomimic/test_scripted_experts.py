@@ -1,0 +1,91 @@
+"""Scripted experts and the robomimic-format files they write."""
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from lerobot_pacdp.robomimic import scripted_experts
+from lerobot_pacdp.robomimic.hdf5_adapter import inspect_hdf5
+from lerobot_pacdp.robomimic.scripted_experts import collect_demos, measure_success_rate
+
+
+def test_written_file_has_the_released_files_schema(scripted_lift):
+    path, demos, stats = scripted_lift
+    assert stats.successes == len(demos) == 4
+    with h5py.File(path, "r") as f:
+        data = f["data"]
+        assert data.attrs["total"] == sum(len(d) for d in demos)
+        env_args = json.loads(data.attrs["env_args"])
+        assert env_args["env_name"] == "Lift" and env_args["env_version"].startswith("1.5")
+        assert env_args["env_kwargs"]["control_freq"] == 20 and env_args["env_kwargs"]["robots"] == ["Panda"]
+        assert env_args["env_kwargs"]["controller_configs"]["body_parts"]["right"]["type"] == "OSC_POSE"
+        for i, demo in enumerate(demos):
+            group = data[f"demo_{i}"]
+            n = group.attrs["num_samples"]
+            assert n == len(demo) and group.attrs["model_file"].startswith("<mujoco")
+            assert group["actions"].shape == (n, 7) and group["states"].shape[0] == n
+            assert group["rewards"].shape == (n,) and group["dones"].shape == (n,)
+            assert group["rewards"][-1] == 1.0 and group["dones"][-1] == 1 and not group["rewards"][:-1].any()
+            assert np.abs(group["actions"][()]).max() <= 1.0
+            for key in ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos", "robot0_joint_pos"):
+                assert group[f"obs/{key}"].shape[0] == n and key in group["next_obs"]
+            np.testing.assert_array_equal(group["next_obs/object"][:-1], group["obs/object"][1:])
+        train = [n.decode() for n in f["mask/train"][()]]
+        valid = [n.decode() for n in f["mask/valid"][()]]
+        assert sorted(train + valid) == [f"demo_{i}" for i in range(4)] and len(valid) == 1
+    info = inspect_hdf5(path)  # and the converter accepts it
+    assert info.task.name == "lift" and info.generation == "1.5"
+
+
+def test_lift_demos_are_short_and_deterministic_per_seed(scripted_lift):
+    _, demos, _ = scripted_lift
+    assert all(20 <= len(d) <= 80 for d in demos)
+    again, _, _ = collect_demos("lift", 1, seed=7, action_noise=0.05)
+    np.testing.assert_array_equal(again[0].actions, demos[0].actions)
+    np.testing.assert_array_equal(again[0].states, demos[0].states)
+
+
+def test_action_noise_diversifies_the_demos(scripted_lift):
+    _, noisy, _ = scripted_lift
+    clean, _, _ = collect_demos("lift", 1, seed=7, action_noise=0.0)
+    # Same initial state (same seed), different actions.
+    np.testing.assert_array_equal(clean[0].states[0], noisy[0].states[0])
+    n = min(len(clean[0]), len(noisy[0]))
+    assert not np.allclose(clean[0].actions[:n, :6], noisy[0].actions[:n, :6])
+
+
+@pytest.mark.parametrize(("task", "episodes"), [("can", 2), ("square", 2)])
+def test_can_and_square_experts_succeed(task, episodes):
+    stats = measure_success_rate(task, episodes, seed=0)
+    assert stats.successes == episodes, stats.as_dict()
+    assert all(length < 400 for length in stats.success_lengths)
+
+
+def test_cli_writes_a_file_and_reports_the_success_rate(tmp_path, capsys):
+    out = tmp_path / "demos.hdf5"
+    argv = ["--task", "lift", "--num-demos", "2", "--output", str(out), "--seed", "1", "--action-noise", "0.02"]
+    assert scripted_experts.main(argv) == 0
+    assert "lift: 2/2 successful episodes (100%)" in capsys.readouterr().out
+    with h5py.File(out, "r") as f:
+        assert sorted(f["data"].keys()) == ["demo_0", "demo_1"]
+        assert json.loads(f["data"].attrs["scripted_expert"])["action_noise"] == 0.02
+    assert scripted_experts.main(argv) == 2  # exists, no --overwrite
+    assert "already exists" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--task", "transport", "--num-demos", "1"], "no scripted expert for 'transport'"),
+        (["--task", "stack", "--num-demos", "1"], "unknown robomimic task"),
+        (["--task", "lift", "--num-demos", "0"], "--num-demos must be >= 1"),
+        (["--task", "lift", "--num-demos", "1", "--action-noise", "-1"], "--action-noise must be >= 0"),
+    ],
+)
+def test_cli_bad_input_exits_2(tmp_path, capsys, argv, message):
+    assert scripted_experts.main([*argv, "--output", str(tmp_path / "x.hdf5")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("pacdp-scripted-demos: error:") and message in err and "Traceback" not in err
+    assert not (tmp_path / "x.hdf5").exists()
