@@ -37,10 +37,4 @@ rm -rf "$out/eval"
   --env.type=robomimic --env.task=lift \
   --eval.n_episodes="$eval_episodes" --eval.batch_size=5 --eval.use_async_envs=false \
   --output_dir="$out/eval"
-"$bin/python" - "$out" <<'PY'
-import json, sys
-from pathlib import Path
-out = Path(sys.argv[1])
-overall = json.loads((out / "eval" / "eval_info.json").read_text())["overall"]
-print(f"success rate: {overall['pc_success']:.1f}% over {overall['n_episodes']} episodes")
-PY
+"$bin/python" -c "import json, sys; o = json.load(open(sys.argv[1]))['overall']; print(f'success rate: {o[\"pc_success\"]:.1f}% over {o[\"n_episodes\"]} episodes')" "$out/eval/eval_info.json"

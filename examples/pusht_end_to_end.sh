@@ -40,10 +40,4 @@ rm -rf "$out/eval"
   --env.type=pusht --env.obs_type=environment_state_agent_pos \
   --eval.n_episodes="$eval_episodes" --eval.batch_size=5 --eval.use_async_envs=false \
   --output_dir="$out/eval"
-python3 - "$out" <<'PY'
-import json, sys
-from pathlib import Path
-out = Path(sys.argv[1])
-overall = json.loads((out / "eval" / "eval_info.json").read_text())["overall"]
-print(f"success rate: {overall['pc_success']:.1f}% over {overall['n_episodes']} episodes  (videos: {out / 'eval' / 'videos'})")
-PY
+"$bin/python" -c "import json, sys; o = json.load(open(sys.argv[1]))['overall']; print(f'success rate: {o[\"pc_success\"]:.1f}% over {o[\"n_episodes\"]} episodes')" "$out/eval/eval_info.json"

@@ -6,40 +6,32 @@ import pytest
 from lerobot_pacdp.robomimic.hdf5_format import write_robomimic_hdf5
 
 
-@pytest.fixture(scope="session")
-def lift_env():
+def _session_env(task: str, **kwargs):
     from lerobot_pacdp.robomimic.env import RobomimicEnv
 
-    env = RobomimicEnv("lift")
+    env = RobomimicEnv(task, **kwargs)
     yield env
     env.close()
+
+
+@pytest.fixture(scope="session")
+def lift_env():
+    yield from _session_env("lift")
 
 
 @pytest.fixture(scope="session")
 def lift_env_legacy():
-    from lerobot_pacdp.robomimic.env import RobomimicEnv
-
-    env = RobomimicEnv("lift", robosuite_compat="1.4", render_mode=None)
-    yield env
-    env.close()
+    yield from _session_env("lift", robosuite_compat="1.4", render_mode=None)
 
 
 @pytest.fixture(scope="session")
 def square_env():
-    from lerobot_pacdp.robomimic.env import RobomimicEnv
-
-    env = RobomimicEnv("square", render_mode=None)
-    yield env
-    env.close()
+    yield from _session_env("square", render_mode=None)
 
 
 @pytest.fixture(scope="session")
 def square_env_legacy():
-    from lerobot_pacdp.robomimic.env import RobomimicEnv
-
-    env = RobomimicEnv("square", robosuite_compat="1.4", render_mode=None)
-    yield env
-    env.close()
+    yield from _session_env("square", robosuite_compat="1.4", render_mode=None)
 
 
 @pytest.fixture(scope="session")

@@ -214,26 +214,16 @@ def _check_vector_env(envs, n):
     assert np.stack(frames).shape == (n, 256, 256, 3)
 
 
-def test_sync_vector_env_via_lerobot_make_env():
+@pytest.mark.parametrize(
+    "use_async, vector_class", [(False, "SyncVectorEnv"), pytest.param(True, "AsyncVectorEnv", marks=pytest.mark.slow)]
+)
+def test_vector_envs_via_lerobot_make_env(use_async, vector_class):
     from lerobot.envs.factory import make_env, make_env_config
     from lerobot.envs.utils import close_envs
 
-    envs = make_env(make_env_config("robomimic", task="lift"), n_envs=2, use_async_envs=False)
+    envs = make_env(make_env_config("robomimic", task="lift"), n_envs=2, use_async_envs=use_async)
     try:
-        assert type(envs["robomimic"][0]).__name__ == "SyncVectorEnv"
-        _check_vector_env(envs, 2)
-    finally:
-        close_envs(envs)
-
-
-@pytest.mark.slow
-def test_async_vector_env_via_lerobot_make_env():
-    from lerobot.envs.factory import make_env, make_env_config
-    from lerobot.envs.utils import close_envs
-
-    envs = make_env(make_env_config("robomimic", task="lift"), n_envs=2, use_async_envs=True)
-    try:
-        assert type(envs["robomimic"][0]).__name__ == "AsyncVectorEnv"
+        assert type(envs["robomimic"][0]).__name__ == vector_class
         _check_vector_env(envs, 2)
     finally:
         close_envs(envs)

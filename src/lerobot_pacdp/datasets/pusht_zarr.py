@@ -7,7 +7,6 @@ and gym_pusht's reward / success recomputed from the block pose.
 """
 
 import argparse
-import logging
 import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -16,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_pacdp.atomic_io import staged_directory
+from lerobot_pacdp.datasets import quiet_dataset_writing
 from lerobot_pacdp.datasets.pusht_geometry import NUM_KEYPOINTS, keypoints_and_coverage, reward_and_success
 from lerobot_pacdp.episodes import EpisodeSelectionError, parse_episodes
 
@@ -192,15 +192,6 @@ def convert_pusht_zarr(
     return output_root
 
 
-def _quiet_library_output() -> None:
-    """Keep the CLI's output to our progress bar: no per-episode `datasets` bars, and no torchcodec
-    load-failure traceback from LeRobot (it only matters for video datasets; this one has none)."""
-    import datasets
-
-    datasets.disable_progress_bars()
-    logging.getLogger("lerobot.utils.import_utils").setLevel(logging.ERROR)
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """`pacdp-convert-pusht`: exits 2 with a one-line message (no traceback) on bad input."""
     parser = argparse.ArgumentParser(
@@ -214,7 +205,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--episodes", help="demo indices to convert, e.g. 0-19 or 0,1,2 (default: all)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output root")
     args = parser.parse_args(argv)
-    _quiet_library_output()
+    quiet_dataset_writing()
 
     try:
         episodes = parse_episodes(args.episodes) if args.episodes is not None else None

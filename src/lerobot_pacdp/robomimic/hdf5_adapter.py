@@ -20,7 +20,6 @@ robosuite generation that recorded the file (which `--env.robosuite_compat` to e
 
 import argparse
 import json
-import logging
 import re
 import sys
 from collections.abc import Sequence
@@ -31,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from lerobot_pacdp.atomic_io import staged_directory
+from lerobot_pacdp.datasets import quiet_dataset_writing
 from lerobot_pacdp.robomimic import compat
 from lerobot_pacdp.robomimic.tasks import (
     FPS,
@@ -357,14 +357,6 @@ def episodes_argument(episodes: Sequence[int]) -> str:
 
 
 # ----------------------------------------------------------------------------------------------------------
-def _quiet_library_output() -> None:
-    """Keep the CLI's output to our progress bar (no per-episode `datasets` bars or torchcodec warnings)."""
-    import datasets
-
-    datasets.disable_progress_bars()
-    logging.getLogger("lerobot.utils.import_utils").setLevel(logging.ERROR)
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """`pacdp-convert-robomimic`: exits 2 with a one-line message (no traceback) on bad input."""
     parser = argparse.ArgumentParser(
@@ -399,7 +391,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail("pass --hdf5 FILE --output-root DIR to convert, or --episodes-of DATASET_ROOT.")
     if args.split is not None or args.first is not None:
         return fail("--split/--first select episodes of a converted dataset: use them with --episodes-of.")
-    _quiet_library_output()
+    quiet_dataset_writing()
     try:
         root = convert_robomimic_hdf5(
             args.hdf5, args.output_root, args.repo_id, args.task, args.max_demos, args.overwrite, progress=True
