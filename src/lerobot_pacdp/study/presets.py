@@ -1,0 +1,254 @@
+"""The study presets: every number a study uses is set here once (or read from the file that owns it).
+
+- `cpu`: PushT from the real demos in `../shared/data/pusht`, the project's CPU U-Net
+  (configs/pusht/pacdp_cpu.json: down_dims 64/128/256, step embedding 64, the U-Net of
+  `benchmarks/speed.py --preset cpu`), 20 and 40 training demos, 20 held-out demos per seed,
+  DP / BDP / PAC-DP, seeds 0 and 1, 1200 steps at batch 64, a checkpoint every 120 steps.
+  Measured on the 2-core CPU machine (lerobot-train, one thread per run, other jobs running):
+  0.45 s/step (0.17 s update + 0.28 s LeRobot data loading; data loading is single-threaded Python,
+  so two runs side by side (`jobs=2`) nearly double the throughput). 12 runs x 1200 steps x 0.45 s / 2
+  jobs = 54 min of training, plus ~1 min data conversion and ~5 min of metrics: about an hour.
+  The learning rate is raised to 1e-3 with a 50-step warm-up (the diffusion preset's 1e-4 / 500 steps
+  is sized for 10^5-10^6 steps) so 1200 steps fit the data well and DP can overfit within the run.
+  `long_pair=true` instead trains BDP and PAC-DP on 20 demos for 24k steps (~3 h each at 0.45 s/step),
+  `max_chunk_steps` at a time, resumable across sessions.
+- `paper`: paper Sec. IV on a GPU: PushT (configs/pusht/pacdp_paper.json: 10^6 steps, batch 256, paper
+  U-Net) and the five robomimic tasks (`robomimic.train_configs.paper_config`, steps and lambda from
+  `robomimic.tasks.TASKS`), 60 held-out demos per seed, training demos 20/40/80/140 (the paper's "200
+  demonstrations" = 140 trained on + 60 held out; Transport and ToolHang only at 140), seeds 0-2, the
+  paper's grid lambda in {1e-5, 1e-6} (plus each task's own lambda) x rho in {-3.5, -4, -4.5, -5}.
+"""
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from lerobot_pacdp.robomimic.tasks import PAPER_NUM_DEMOS, PAPER_PRIOR_RHO, TASKS
+from lerobot_pacdp.robomimic.train_configs import paper_config
+
+REPO_ROOT = Path(__file__).resolve().parents[3]
+CONFIGS_DIR = REPO_ROOT / "configs"
+SHARED_PUSHT_ZARR = REPO_ROOT.parent / "shared" / "data" / "pusht" / "pusht_cchi_v7_replay.zarr"
+
+PAPER_KL_GRID = (1e-5, 1e-6)  # Sec. IV-B "Hyperparameter Sensitivity Analysis"
+PAPER_RHO_GRID = (-3.5, -4.0, -4.5, -5.0)
+PAPER_SEEDS = (0, 1, 2)
+PAPER_HELDOUT = PAPER_NUM_DEMOS - 140  # 30% of 200 demos held out (Table I)
+PAPER_LOW_DATA_DEMOS = (20, 40, 80, 140)  # Table II's 20/40/80/200 demos; "200" trains on 140 of them
+
+
+class StudyError(ValueError):
+    """A user-facing problem with a study's settings or inputs; the CLI prints it and exits 2."""
+
+
+def load_config_file(name: str) -> dict:
+    """A lerobot-train config file of this repository (the single source of its settings)."""
+    path = CONFIGS_DIR / name
+    if not path.is_file():
+        raise StudyError(f"{path} is missing; the study presets read their base settings from it.")
+    return json.loads(path.read_text())
+
+
+@dataclass(frozen=True)
+class TaskPreset:
+    """One benchmark task of a study.
+
+    `train_config` is the base lerobot-train config (dataset repo id, env, policy, batch, workers); the
+    runner replaces the episodes, seed, steps, method and output dir per run. The dataset lives at
+    `dataset_root` (relative paths are under the study's output dir), converted from `pusht_zarr` when
+    given and missing, else it must exist (`None`: LeRobot's default location for the repo id).
+    """
+
+    name: str
+    train_config: dict
+    demos: tuple[int, ...]
+    heldout: int  # held-out demos per seed, disjoint from every training set of that seed
+    steps: int
+    save_freq: int
+    reference_kl_weight: float  # Table I / Fig. 3 PAC-DP lambda (the task's paper value)
+    dataset_root: str | None = None
+    pusht_zarr: str | None = None
+    num_episodes: int | None = None  # expected demos in the dataset (planning before it is converted)
+
+    @property
+    def repo_id(self) -> str:
+        return self.train_config["dataset"]["repo_id"]
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A whole study: tasks x demos x seeds x methods (DP, BDP over rho, PAC-DP over lambda x rho)."""
+
+    name: str
+    tasks: tuple[TaskPreset, ...]
+    seeds: tuple[int, ...]
+    kl_weights: tuple[float, ...]  # PAC-DP grid (each task's reference lambda is added)
+    prior_rhos: tuple[float, ...]  # BDP and PAC-DP grid
+    reference_rho: float  # Table I / Fig. 3 rho
+    seed_offset: int  # lerobot-train --seed = seed_offset + study seed
+    jobs: int  # lerobot-train runs side by side
+    # Metrics (lerobot_pacdp.metrics.sweep): per run the mean over its last `last_k` checkpoints.
+    last_k: int
+    nll_steps: int | None  # diffusion steps of the NLL bound (None: all)
+    frame_stride: int  # every k-th held-out window
+    metrics_batch_size: int
+    success_episodes: int  # rollouts per evaluated checkpoint (0: no success rate)
+    success_last_k: int  # success rate on each run's last k checkpoints only (rollouts are costly)
+    device: str | None
+    # Performance table rows: (benchmarks/speed.py preset, batch size).
+    perf_rows: tuple[tuple[str, int], ...]
+    # The long BDP / PAC-DP pair (`--long_pair=true`).
+    long_pair_demos: int = 20
+    long_pair_steps: int = 0
+    long_pair_save_freq: int = 0
+    long_pair_chunk_steps: int | None = None  # each invocation trains a long run this many more steps
+
+    def task(self, name: str) -> TaskPreset:
+        for task in self.tasks:
+            if task.name == name:
+                return task
+        raise StudyError(f"preset {self.name!r} has no task {name!r}; choose from {[t.name for t in self.tasks]}.")
+
+
+def _cpu_preset() -> Preset:
+    base = load_config_file("pusht/pacdp_cpu.json")
+    base["policy"].update(optimizer_lr=1e-3, scheduler_warmup_steps=50)
+    base.update(batch_size=64, num_workers=0, log_freq=50)
+    pusht = TaskPreset(
+        name="pusht",
+        train_config=base,
+        demos=(20, 40),
+        heldout=20,
+        steps=1200,
+        save_freq=120,
+        reference_kl_weight=base["policy"]["kl_weight"],
+        dataset_root="data/pusht",
+        pusht_zarr=str(SHARED_PUSHT_ZARR),
+    )
+    return Preset(
+        name="cpu",
+        tasks=(pusht,),
+        seeds=(0, 1),
+        kl_weights=(),
+        prior_rhos=(base["policy"]["prior_rho"],),
+        reference_rho=base["policy"]["prior_rho"],
+        seed_offset=base["seed"],
+        jobs=2,
+        last_k=3,
+        nll_steps=25,
+        frame_stride=2,
+        metrics_batch_size=256,
+        success_episodes=10,
+        success_last_k=1,
+        device="cpu",
+        perf_rows=(("cpu", 64), ("paper", 8)),
+        long_pair_steps=24_000,
+        long_pair_save_freq=1_000,
+        long_pair_chunk_steps=6_000,
+    )
+
+
+def _paper_task(
+    name: str, config: dict, kl: float, demos: tuple[int, ...], root: str | None, zarr: str | None = None,
+    num_episodes: int | None = None,
+) -> TaskPreset:
+    """A task at paper scale from its lerobot-train config (steps and save_freq included)."""
+    config = json.loads(json.dumps(config))
+    config["dataset"].pop("episodes", None)  # the runner picks them per (demos, seed)
+    steps, save_freq = config.pop("steps"), config.pop("save_freq")
+    return TaskPreset(name, config, demos, PAPER_HELDOUT, steps, save_freq, kl, root, zarr, num_episodes)
+
+
+def _paper_preset() -> Preset:
+    pusht = load_config_file("pusht/pacdp_paper.json")
+    tasks = [
+        _paper_task(
+            "pusht", pusht, pusht["policy"]["kl_weight"], PAPER_LOW_DATA_DEMOS, "data/pusht", str(SHARED_PUSHT_ZARR)
+        )
+    ]
+    for name, task in TASKS.items():
+        demos = PAPER_LOW_DATA_DEMOS if task.train_steps < 500_000 else PAPER_LOW_DATA_DEMOS[-1:]
+        tasks.append(_paper_task(name, paper_config(name), task.kl_weight, demos, None, None, PAPER_NUM_DEMOS))
+    return Preset(
+        name="paper",
+        tasks=tuple(tasks),
+        seeds=PAPER_SEEDS,
+        kl_weights=PAPER_KL_GRID,
+        prior_rhos=PAPER_RHO_GRID,
+        reference_rho=PAPER_PRIOR_RHO,
+        seed_offset=pusht["seed"],
+        jobs=1,
+        last_k=10,
+        nll_steps=None,
+        frame_stride=1,
+        metrics_batch_size=1024,
+        success_episodes=1000,
+        success_last_k=10,
+        device=None,
+        perf_rows=(("paper", 256),),
+        long_pair_demos=20,
+        long_pair_steps=pusht["steps"],
+        long_pair_save_freq=pusht["save_freq"],
+        long_pair_chunk_steps=100_000,
+    )
+
+
+PRESETS = {"cpu": _cpu_preset, "paper": _paper_preset}
+
+
+def get_preset(name: str) -> Preset:
+    if name not in PRESETS:
+        raise StudyError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}.")
+    return PRESETS[name]()
+
+
+def with_overrides(
+    preset: Preset,
+    *,
+    tasks: list[str] | None = None,
+    demos: list[int] | None = None,
+    seeds: list[int] | None = None,
+    steps: int | None = None,
+    save_freq: int | None = None,
+    kl_weights: list[float] | None = None,
+    prior_rhos: list[float] | None = None,
+    jobs: int | None = None,
+    success_episodes: int | None = None,
+) -> Preset:
+    """The preset with CLI overrides applied (None keeps the preset's value), validated."""
+    selected = [preset.task(name) for name in tasks] if tasks else list(preset.tasks)
+    if demos is not None:
+        selected = [replace(t, demos=tuple(demos)) for t in selected]
+    if steps is not None:
+        if save_freq is None:  # keep ~10 checkpoints per run for the curves
+            save_freq = max(1, steps // 10)
+        selected = [replace(t, steps=steps) for t in selected]
+    if save_freq is not None:
+        selected = [replace(t, save_freq=save_freq) for t in selected]
+    preset = replace(
+        preset,
+        tasks=tuple(selected),
+        seeds=tuple(seeds) if seeds is not None else preset.seeds,
+        kl_weights=tuple(kl_weights) if kl_weights is not None else preset.kl_weights,
+        prior_rhos=tuple(prior_rhos) if prior_rhos is not None else preset.prior_rhos,
+        jobs=jobs if jobs is not None else preset.jobs,
+        success_episodes=success_episodes if success_episodes is not None else preset.success_episodes,
+    )
+    validate(preset)
+    return preset
+
+
+def validate(preset: Preset) -> None:
+    if not preset.seeds or len(set(preset.seeds)) != len(preset.seeds):
+        raise StudyError(f"seeds must be a non-empty list of distinct integers, got {list(preset.seeds)}.")
+    if not preset.prior_rhos:
+        raise StudyError("prior_rhos (the BDP / PAC-DP rho grid) must not be empty.")
+    if any(k <= 0 for k in preset.kl_weights):
+        raise StudyError(f"PAC-DP kl_weights must be > 0 (lambda 0 is BDP), got {list(preset.kl_weights)}.")
+    if preset.jobs < 1:
+        raise StudyError(f"jobs must be >= 1, got {preset.jobs}.")
+    for task in preset.tasks:
+        if not task.demos or any(d < 1 for d in task.demos):
+            raise StudyError(f"{task.name}: demos must be positive training-demo counts, got {list(task.demos)}.")
+        if task.steps < 1 or not 1 <= task.save_freq <= task.steps:
+            raise StudyError(f"{task.name}: need steps >= 1 and 1 <= save_freq <= steps, got {task.steps}, {task.save_freq}.")

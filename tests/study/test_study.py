@@ -1,0 +1,241 @@
+"""The reproduction study: planning, identical / disjoint episode sets, resumable execution, tables."""
+
+import dataclasses
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+from lerobot_pacdp.study import runner, tables
+from lerobot_pacdp.study.presets import Preset, StudyError, TaskPreset, get_preset, with_overrides
+from lerobot_pacdp.study.runner import Executor, RunSpec, plan_task, run_status, split_episodes, train_config
+
+FAKE_TRAINER = [sys.executable, str(Path(__file__).with_name("fake_trainer.py"))]
+
+
+def _tiny_preset(steps: int = 6, save_freq: int = 2, demos=(2, 3), seeds=(0, 1), heldout: int = 2) -> Preset:
+    base = get_preset("cpu")
+    task = dataclasses.replace(base.tasks[0], demos=demos, steps=steps, save_freq=save_freq, heldout=heldout)
+    return dataclasses.replace(base, tasks=(task,), seeds=seeds, jobs=1)
+
+
+def _write_requests(specs: list[RunSpec], preset: Preset, out: Path) -> None:
+    for spec in specs:
+        config = train_config(spec, preset.tasks[0], out / "data", preset.seed_offset, out)
+        runner.write_json_atomic(spec.run_dir(out) / runner.REQUEST_FILE, config)
+
+
+def test_cpu_plan_shape_and_methods():
+    preset = get_preset("cpu")
+    specs = plan_task(preset.tasks[0], preset, num_episodes=206)
+    assert len(specs) == 3 * 2 * 2  # methods x demos {20, 40} x seeds
+    assert {(s.method, s.kl_weight, s.prior_rho) for s in specs} == {
+        ("DP", None, None), ("BDP", 0.0, -4.5), ("PAC-DP", 1e-4, -4.5)
+    }
+    assert len({s.name for s in specs}) == len(specs)
+
+
+def test_paper_plan_uses_the_task_table_and_grid():
+    preset = get_preset("paper")
+    from lerobot_pacdp.robomimic.tasks import TASKS
+
+    square = preset.task("square")
+    assert square.steps == TASKS["square"].train_steps and square.reference_kl_weight == TASKS["square"].kl_weight
+    assert preset.task("transport").demos == (140,)
+    specs = plan_task(square, preset, num_episodes=200)
+    per_cell = 1 + 4 + 2 * 4  # DP, BDP per rho, PAC-DP per (lambda in {1e-5, 1e-6}) x rho
+    assert len(specs) == len(square.demos) * len(preset.seeds) * per_cell
+    pusht = plan_task(preset.task("pusht"), preset, num_episodes=206)
+    assert {s.kl_weight for s in pusht if s.method == "PAC-DP"} == {1e-4, 1e-5, 1e-6}  # reference lambda added
+
+
+def test_training_episodes_identical_across_methods_heldout_disjoint_and_fixed_per_seed():
+    preset = with_overrides(get_preset("cpu"), prior_rhos=[-4.0, -4.5], kl_weights=[1e-5])
+    specs = plan_task(preset.tasks[0], preset, num_episodes=206)
+    for seed in preset.seeds:
+        runs = [s for s in specs if s.seed == seed]
+        assert len({s.heldout_episodes for s in runs}) == 1  # one held-out set per seed
+        heldout = set(runs[0].heldout_episodes)
+        for demos in (20, 40):
+            sets = {s.train_episodes for s in runs if s.demos == demos}
+            assert len(sets) == 1  # every method and grid point trains on the same demos
+            (train,) = sets
+            assert len(train) == demos and not heldout & set(train)
+        small = next(s for s in runs if s.demos == 20).train_episodes
+        assert set(small) <= set(next(s for s in runs if s.demos == 40).train_episodes)
+    assert specs[0].heldout_episodes != next(s for s in specs if s.seed == 1).heldout_episodes
+    assert split_episodes(206, 0, 20, [20]) == split_episodes(206, 0, 20, [20])  # deterministic
+
+
+def test_bad_inputs_fail_clearly():
+    with pytest.raises(StudyError, match="leave 6 for training"):
+        split_episodes(26, 0, 20, [20])
+    with pytest.raises(StudyError, match="unknown preset"):
+        get_preset("gpu")
+    with pytest.raises(StudyError, match="no task"):
+        with_overrides(get_preset("cpu"), tasks=["lift"])
+    with pytest.raises(StudyError, match="kl_weights must be > 0"):
+        with_overrides(get_preset("cpu"), kl_weights=[0.0])
+    with pytest.raises(StudyError, match="distinct"):
+        with_overrides(get_preset("cpu"), seeds=[0, 0])
+
+
+def test_dp_config_matches_pacdp_diffusion_settings(tmp_path):
+    import draccus
+    from lerobot.configs.policies import PreTrainedConfig
+
+    preset = get_preset("cpu")
+    specs = plan_task(preset.tasks[0], preset, num_episodes=206)
+    dp = next(s for s in specs if s.method == "DP")
+    pac = next(s for s in specs if s.method == "PAC-DP" and s.demos == dp.demos and s.seed == dp.seed)
+    dp_cfg = train_config(dp, preset.tasks[0], tmp_path, preset.seed_offset, tmp_path)
+    pac_cfg = train_config(pac, preset.tasks[0], tmp_path, preset.seed_offset, tmp_path)
+    assert dp_cfg["dataset"] == pac_cfg["dataset"] and dp_cfg["seed"] == pac_cfg["seed"]
+    assert dp_cfg["dataset"]["eval_split"] == 0.0 and dp_cfg["eval_steps"] == 0
+    dp_policy = draccus.decode(PreTrainedConfig, dp_cfg["policy"])
+    pac_policy = draccus.decode(PreTrainedConfig, pac_cfg["policy"])
+    assert dp_policy.type == "diffusion" and pac_policy.type == "pacdp"
+    for field in ("down_dims", "diffusion_step_embed_dim", "horizon", "n_obs_steps", "n_action_steps",
+                  "num_inference_steps", "noise_scheduler_type", "beta_schedule", "normalization_mapping",
+                  "do_mask_loss_for_padding", "optimizer_lr", "scheduler_warmup_steps", "kernel_size"):  # fmt: skip
+        assert getattr(dp_policy, field) == getattr(pac_policy, field), field
+    assert pac_policy.kl_weight == 1e-4 and pac_policy.prior_rho == -4.5
+
+
+def test_executor_skips_finished_runs_and_resumes_interrupted_ones(tmp_path, monkeypatch):
+    monkeypatch.setattr(runner, "POLL_S", 0.05)
+    preset = _tiny_preset(demos=(2,), seeds=(0,))
+    specs = plan_task(preset.tasks[0], preset, num_episodes=8)
+    _write_requests(specs, preset, tmp_path)
+    calls = tmp_path / "calls.txt"
+    monkeypatch.setenv("FAKE_TRAINER_CALLS", str(calls))
+    monkeypatch.setenv("FAKE_TRAINER_FAIL_AT", "4")  # every run dies after its step-4 checkpoint
+    outcome = Executor(preset, tmp_path, FAKE_TRAINER, None).run(specs)
+    assert len(outcome["failed"]) == 3 and not outcome["done"]
+    assert all(run_status(s, tmp_path) == ("resume", 4) for s in specs)
+
+    monkeypatch.delenv("FAKE_TRAINER_FAIL_AT")
+    outcome = Executor(preset, tmp_path, FAKE_TRAINER, None).run(specs)
+    assert len(outcome["done"]) == 3
+    lines = calls.read_text().splitlines()
+    assert len(lines) == 6 and all("resume=True from=4" in line for line in lines[3:])
+    for spec in specs:
+        done = json.loads((spec.run_dir(tmp_path) / runner.DONE_FILE).read_text())
+        assert done["steps"] == 6 and done["final_checkpoint"].endswith("000006")
+
+    outcome = Executor(preset, tmp_path, FAKE_TRAINER, None).run(specs)  # nothing left to do
+    assert len(outcome["done"]) == 3 and len(calls.read_text().splitlines()) == 6
+
+
+def test_run_without_checkpoint_restarts_and_final_checkpoint_counts_as_done(tmp_path, monkeypatch):
+    monkeypatch.setattr(runner, "POLL_S", 0.05)
+    preset = _tiny_preset(demos=(2,), seeds=(0,))
+    specs = plan_task(preset.tasks[0], preset, num_episodes=8)[:2]
+    _write_requests(specs, preset, tmp_path)
+    (specs[0].train_dir(tmp_path) / "checkpoints").mkdir(parents=True)  # died before its first checkpoint
+    final = specs[1].train_dir(tmp_path) / "checkpoints" / "000006"  # finished, but no done marker yet
+    for sub, name, text in (("pretrained_model", "model.safetensors", ""), ("training_state", "training_step.json", '{"step": 6}')):
+        (final / sub).mkdir(parents=True)
+        (final / sub / name).write_text(text)
+    assert run_status(specs[0], tmp_path) == ("new", 0) and run_status(specs[1], tmp_path)[0] == "done"
+    outcome = Executor(preset, tmp_path, FAKE_TRAINER, None).run(specs)
+    assert len(outcome["done"]) == 2
+    assert (specs[1].run_dir(tmp_path) / runner.DONE_FILE).is_file()
+    assert not (specs[1].run_dir(tmp_path) / runner.LOG_FILE).exists()  # never launched
+
+
+def test_chunked_runs_pause_at_a_checkpoint_and_continue(tmp_path, monkeypatch):
+    monkeypatch.setattr(runner, "POLL_S", 0.05)
+    monkeypatch.setenv("FAKE_TRAINER_SLEEP", "1.0")
+    preset = _tiny_preset(steps=6, save_freq=2, demos=(2,), seeds=(0,))
+    spec = plan_task(preset.tasks[0], preset, num_episodes=8)[0]
+    _write_requests([spec], preset, tmp_path)
+    outcome = Executor(preset, tmp_path, FAKE_TRAINER, max_chunk_steps=3).run([spec])
+    assert outcome["paused"] == [spec] and run_status(spec, tmp_path) == ("resume", 4)  # 3 steps -> checkpoint 4
+    outcome = Executor(preset, tmp_path, FAKE_TRAINER, max_chunk_steps=3).run([spec])
+    assert outcome["done"] == [spec]
+
+
+def test_tables_from_known_rows():
+    def run(method, demos, seed, kl, rho, npe, sr):
+        return {"task": "pusht", "demos": demos, "seed": seed, "method": method, "kl_weight": kl, "prior_rho": rho,
+                "npe": npe, "nll_bound": None, "success_rate": sr}  # fmt: skip
+
+    per_run = [
+        run("DP", 20, 0, None, None, 0.30, 0.4), run("DP", 20, 1, None, None, 0.32, 0.6),
+        run("BDP", 20, 0, 0.0, -4.5, 0.28, 0.5), run("BDP", 20, 1, 0.0, -4.5, 0.30, 0.5),
+        run("BDP", 20, 0, 0.0, -4.0, 0.26, 0.3), run("BDP", 20, 1, 0.0, -4.0, 0.26, 0.3),
+        run("PAC-DP", 20, 0, 1e-4, -4.5, 0.10, 0.7), run("PAC-DP", 20, 1, 1e-4, -4.5, 0.14, 0.9),
+        run("PAC-DP", 20, 0, 1e-5, -4.5, 0.20, 0.8), run("PAC-DP", 20, 1, 1e-5, -4.5, 0.20, 0.6),
+    ]  # fmt: skip
+    stats = tables.seed_statistics(per_run)
+    assert stats[("pusht", 20, "DP", None, None)]["npe"] == pytest.approx((0.31, math.sqrt(2e-4), 2))
+    cells = tables.build_tables(stats, {"pusht": (1e-4, -4.5)})
+    get = {(c["table"], c["column"], c["metric"]): c for c in cells}
+    assert get[("I", "PAC-DP", "npe")]["mean"] == pytest.approx(0.12)
+    assert get[("I", "BDP", "npe")]["mean"] == pytest.approx(0.29)  # the reference rho, not the best one
+    assert get[("II", "BDP", "npe")]["mean"] == pytest.approx(0.26)  # best rho (lowest NPE)
+    assert get[("II", "PAC-DP", "success_rate")]["mean"] == pytest.approx(0.8)  # best SR: lambda 1e-4 (0.8 vs 0.7)
+    assert get[("II", "PAC-DP", "success_rate")]["kl_weight"] == 1e-4
+    avg = get[("III", "PAC-DP avg", "npe")]
+    assert avg["mean"] == pytest.approx(0.16) and avg["std"] == pytest.approx(math.sqrt(2 * 0.04**2)) and avg["n"] == 2
+    assert get[("III", "BDP avg", "success_rate")]["mean"] == pytest.approx(0.4)
+    assert get[("III", "PAC-DP best", "npe")]["mean"] == pytest.approx(0.12)
+    assert ("I", "DP", "nll_bound") not in get  # no values, no cell
+    markdown = tables.render_markdown(cells, last_k=3)
+    assert "| pusht | 20 | 0.310 ± 0.014 |" in markdown and "(0.0001, -4.5)" in markdown
+
+
+def test_per_run_values_use_the_last_k_checkpoints():
+    rows = [{"run": "r", "label": "x", "step": s, "npe": v, "nll_bound": None, "success_rate": None, "task": "pusht",
+             "demos": 20, "seed": 0, "method": "DP", "kl_weight": None, "prior_rho": None, "name": "r", "group": "main"}
+            for s, v in ((1, 9.0), (2, 1.0), (3, 2.0))]  # fmt: skip
+    (value,) = tables.per_run_values(rows, last_k=2)
+    assert value["npe"] == pytest.approx(1.5) and value["last_step"] == 3 and value["success_rate"] is None
+
+
+def test_dry_run_prints_the_plan(tmp_path, capsys, pusht_zarr):
+    assert runner.main(["--preset=cpu", f"--output_dir={tmp_path}", "--dry_run=true", "--seeds=[3]", "--demos=[5]"]) == 0
+    out = capsys.readouterr().out
+    assert "seed 3: held-out demos (20)" in out and "5 training demos (same for every method)" in out
+    assert out.count(" new") == 3 and not (tmp_path / "runs").exists()
+
+
+@pytest.mark.slow
+def test_tiny_study_end_to_end_through_lerobot_train(tmp_path, monkeypatch):
+    """Two methods x one seed through the real lerobot-train (a few steps), then metrics and tables."""
+    from pacdp_testing import make_tiny_dataset
+
+    monkeypatch.setattr(runner, "POLL_S", 0.2)
+    make_tiny_dataset(tmp_path / "data", [30] * 6)
+    base = get_preset("cpu")
+    config = json.loads(json.dumps(base.tasks[0].train_config))
+    config["dataset"]["repo_id"] = "local/tiny"
+    config["policy"].update(down_dims=[16, 32], diffusion_step_embed_dim=16, horizon=8, n_action_steps=4,
+                            drop_n_last_frames=3)  # fmt: skip
+    config.update(batch_size=4, log_freq=1)
+    task = TaskPreset("pusht", config, demos=(3,), heldout=2, steps=4, save_freq=2, reference_kl_weight=1e-4,
+                      dataset_root=str(tmp_path / "data"))  # fmt: skip
+    preset = dataclasses.replace(base, tasks=(task,), seeds=(0,), prior_rhos=(-4.5,), jobs=2, last_k=2,
+                                 nll_steps=4, success_episodes=0, perf_rows=())  # fmt: skip
+    specs = [s for s in plan_task(task, preset, num_episodes=6) if s.method != "BDP"]
+    _write_requests(specs, preset, tmp_path)
+    for spec in specs:  # point the runs at the tiny dataset
+        request = spec.run_dir(tmp_path) / runner.REQUEST_FILE
+        cfg = json.loads(request.read_text())
+        cfg["dataset"]["root"] = str(tmp_path / "data")
+        runner.write_json_atomic(request, cfg)
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    outcome = Executor(preset, tmp_path, runner.default_trainer(), None).run(specs)
+    assert len(outcome["done"]) == 2, outcome
+    for spec in specs:
+        saved = json.loads((spec.train_dir(tmp_path) / "checkpoints" / "000004" / "pretrained_model" / "train_config.json").read_text())
+        assert saved["dataset"]["episodes"] == list(spec.train_episodes)
+    tables.report(preset, specs, tmp_path)
+    per_run = (tmp_path / "results" / "runs.csv").read_text()
+    assert "DP" in per_run and "PAC-DP" in per_run
+    markdown = (tmp_path / "results" / "tables.md").read_text()
+    assert "Table I" in markdown and "Performance" in markdown
+    assert (tmp_path / "results" / "figures" / "main_pusht_d003" / "npe.png").is_file()
