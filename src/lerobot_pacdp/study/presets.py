@@ -10,7 +10,8 @@
   jobs = 54 min of training, plus ~1 min data conversion and ~5 min of metrics: about an hour.
   The learning rate is raised to 1e-3 with a 50-step warm-up (the diffusion preset's 1e-4 / 500 steps
   is sized for 10^5-10^6 steps) so 1200 steps fit the data well and DP can overfit within the run.
-  `long_pair=true` instead trains BDP and PAC-DP on 20 demos for 24k steps (~3 h each at 0.45 s/step),
+  `long_pair=true` instead trains BDP and PAC-DP (and DP beside them) on 20 demos for 24k steps (~3 h each
+  at 0.45 s/step),
   `max_chunk_steps` at a time, resumable across sessions.
 - `paper`: paper Sec. IV on a GPU: PushT (configs/pusht/pacdp_paper.json: 10^6 steps, batch 256, paper
   U-Net) and the five robomimic tasks (`robomimic.train_configs.paper_config`, steps and lambda from

@@ -2,7 +2,7 @@
 
     pacdp-study --preset=cpu --output_dir=outputs/study_cpu            # ~1 h on 2 CPU cores
     pacdp-study --preset=cpu --output_dir=outputs/study_cpu --dry_run=true
-    pacdp-study --preset=cpu --output_dir=outputs/study_long --long_pair=true   # 6k more steps per call
+    pacdp-study --preset=cpu --output_dir=outputs/study_long --long_pair=true --jobs=3  # 6k more steps per call
     pacdp-study --preset=paper --output_dir=outputs/study_paper --tasks=[pusht] --seeds=[0,1,2]
 
 Plan: tasks x demos x seeds x {DP, BDP per rho, PAC-DP per (lambda, rho)}. For each seed one held-out
@@ -101,11 +101,14 @@ def split_episodes(num_episodes: int, seed: int, heldout: int, demos: Sequence[i
 
 
 def plan_task(task: TaskPreset, preset: Preset, num_episodes: int, long_pair: bool = False) -> list[RunSpec]:
-    """The runs of one task; with `long_pair`, BDP and PAC-DP at the reference point only."""
+    """The runs of one task; with `long_pair`, BDP and PAC-DP at the reference point, and DP beside them
+    (the long runs must show where DP's held-out NPE turns up, and whether the KL term then separates
+    PAC-DP from BDP)."""
     kl_grid = [task.reference_kl_weight] + [k for k in preset.kl_weights if k != task.reference_kl_weight]
     rho_grid = list(preset.prior_rhos)
     if long_pair:
-        points = [("BDP", 0.0, preset.reference_rho), ("PAC-DP", task.reference_kl_weight, preset.reference_rho)]
+        points = [("DP", None, None), ("BDP", 0.0, preset.reference_rho)]
+        points += [("PAC-DP", task.reference_kl_weight, preset.reference_rho)]
     else:
         points = [("DP", None, None)] + [("BDP", 0.0, r) for r in rho_grid]
         points += [("PAC-DP", k, r) for k in kl_grid for r in rho_grid]
@@ -450,7 +453,7 @@ class StudyConfig:
     preset: str = "cpu"  # cpu | paper (see lerobot_pacdp.study.presets)
     output_dir: Path = Path("outputs/study")
     dry_run: bool = False  # print the plan (runs, episodes, what is done / to resume) and exit
-    long_pair: bool = False  # instead of the study: the long BDP / PAC-DP pair (reference point, first seed)
+    long_pair: bool = False  # instead of the study: the long BDP / PAC-DP pair and DP (reference point, first seed)
     tasks: list[str] | None = None
     demos: list[int] | None = None
     seeds: list[int] | None = None
