@@ -20,6 +20,7 @@ Generation labels: `"1.5"` (robosuite >= 1.5, the environment's native layout) a
 robosuite <= 1.4, including the 1.2 files). Importing this module is cheap (no robosuite).
 """
 
+import functools
 import re
 from collections.abc import Mapping
 from typing import Any
@@ -79,6 +80,7 @@ def object_layout(task: RobomimicTask | str, generation: str = NATIVE) -> tuple[
     return task.object_layout if normalize_generation(generation) == NATIVE else legacy_object_layout(task)
 
 
+@functools.cache
 def _permutation(task: RobomimicTask) -> np.ndarray:
     """Indices `p` such that `legacy = native[..., p]` (before sign changes)."""
     starts, start = {}, 0
@@ -88,6 +90,7 @@ def _permutation(task: RobomimicTask) -> np.ndarray:
     return np.concatenate([np.arange(starts[k][0], starts[k][0] + starts[k][1]) for k, _ in legacy_object_layout(task)])
 
 
+@functools.cache
 def _legacy_signs(task: RobomimicTask) -> np.ndarray:
     """+-1 per dimension of the legacy layout (difference 1)."""
     negated = _NEGATED_IN_LEGACY.get(task.name, ())

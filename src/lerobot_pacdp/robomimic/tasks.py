@@ -14,7 +14,6 @@ layout of files recorded with robosuite <= 1.4 from it. Importing this module is
 from dataclasses import dataclass
 
 FPS = 20  # robomimic control frequency (Hz)
-PAPER_PRIOR_RHO = -4.5
 PAPER_NUM_DEMOS = 200  # `ph` demos per task
 PAPER_EVAL_FRACTION = 0.3  # 140 training / 60 held-out demos
 LOW_DATA_DEMO_COUNTS = (20, 40, 80, 200)

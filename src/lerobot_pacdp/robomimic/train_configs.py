@@ -16,9 +16,12 @@ import sys
 from pathlib import Path
 
 from lerobot_pacdp.robomimic import compat
-from lerobot_pacdp.robomimic.tasks import PAPER_EVAL_FRACTION, PAPER_NUM_DEMOS, PAPER_PRIOR_RHO, TASKS, get_task
+from lerobot_pacdp.configuration_pacdp import PacdpConfig
+from lerobot_pacdp.robomimic.tasks import PAPER_EVAL_FRACTION, PAPER_NUM_DEMOS, TASKS, get_task
 
-PAPER_DELTA = 0.025
+# rho and delta: PacdpConfig's defaults are the paper's (its single source).
+PAPER_PRIOR_RHO = PacdpConfig.__dataclass_fields__["prior_rho"].default
+PAPER_DELTA = PacdpConfig.__dataclass_fields__["delta"].default
 CPU_TASKS = ("lift", "can", "square")  # the tasks with scripted experts
 
 

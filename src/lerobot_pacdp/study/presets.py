@@ -24,8 +24,8 @@ import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from lerobot_pacdp.robomimic.tasks import PAPER_NUM_DEMOS, PAPER_PRIOR_RHO, TASKS
-from lerobot_pacdp.robomimic.train_configs import paper_config
+from lerobot_pacdp.robomimic.tasks import PAPER_NUM_DEMOS, TASKS
+from lerobot_pacdp.robomimic.train_configs import PAPER_PRIOR_RHO, paper_config
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
 CONFIGS_DIR = REPO_ROOT / "configs"
