@@ -3,10 +3,12 @@
 import csv
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
 
+from lerobot_pacdp.bayesian_layers import exact_kl
 from lerobot_pacdp.metrics import sweep
 from lerobot_pacdp.metrics.checkpoints import load_policy
 from lerobot_pacdp.metrics.data import EvaluationData
@@ -42,9 +44,21 @@ def test_one_row_per_run_and_checkpoint_in_csv_and_json(swept, tiny_runs):
     assert stored["rows"][0]["checkpoint"] == str(tiny_runs["pacdp_s0"] / "checkpoints" / "000100" / "pretrained_model")
 
 
+def test_kl_column_is_the_posterior_to_prior_kl_of_pacdp_checkpoints_only(swept):
+    out, _ = swept
+    rows = json.loads((out / "metrics.json").read_text())["rows"]
+    for row in rows:
+        if row["policy_type"] == "diffusion":
+            assert row["kl"] is None
+        else:
+            expected = exact_kl(load_policy(Path(row["checkpoint"]), "cpu").policy.unet)
+            assert row["kl"] == pytest.approx(expected) and row["kl"] >= 0
+    assert any(row["kl"] for row in rows if row["label"] == "PAC-DP")  # trained posteriors moved off the prior
+
+
 def test_plots_are_written(swept):
     out, _ = swept
-    for name in ("npe.png", "nll_bound.png", "training_dynamics.png"):
+    for name in ("npe.png", "nll_bound.png", "kl.png", "training_dynamics.png"):
         assert (out / name).read_bytes()[:8] == PNG_MAGIC
     assert not (out / "success_rate.png").exists()  # no data, no plot
 

@@ -24,7 +24,6 @@ or a prior learnt on a disjoint split (see `lerobot_pacdp.metrics.learned_prior`
 k certified configurations needs delta / k.
 """
 
-import copy
 import json
 import math
 import sys
@@ -37,7 +36,7 @@ import torch
 from torch import Tensor
 
 from lerobot_pacdp.atomic_io import write_text_atomic
-from lerobot_pacdp.bayesian_layers import kl_divergence, sampled_weights
+from lerobot_pacdp.bayesian_layers import exact_kl, sampled_weights
 from lerobot_pacdp.metrics.checkpoints import LoadedPolicy, MetricsError, UnsupportedPolicyError, load_policy, run_cli
 from lerobot_pacdp.metrics.data import DatasetArgs, EvalBatch, EvaluationData, resolve_split
 from lerobot_pacdp.metrics.kl_inverse import kl_inverse
@@ -218,12 +217,6 @@ class CertificateReport:
                 f" w.p. >= {ho.confidence:.3f}" + ("  (VACUOUS)" if ho.vacuous else ""),
             ]
         return "\n".join(lines)
-
-
-def exact_kl(unet: torch.nn.Module) -> float:
-    """KL(Q||P) from the saved mu, rho and prior tensors, with float64 elementwise terms (on a float64 copy):
-    training's float32 terms are rounded at ~1e-7 relative each, enough to turn a KL of 0 slightly negative."""
-    return kl_divergence(copy.deepcopy(unet).double()).item()
 
 
 def require_pacdp(loaded: LoadedPolicy) -> None:

@@ -2,7 +2,8 @@
 
 Writes one row per run x checkpoint step (`metrics.csv`, `metrics.json`), plots of each metric against
 the training step with one curve per method and a mean +- std band over its runs/seeds (paper Fig. 3:
-`npe.png`, `nll_bound.png`, `success_rate.png`, all panels in `training_dynamics.png`), and the paper's
+`npe.png`, `nll_bound.png`, `kl.png`, `success_rate.png`, all panels in `training_dynamics.png`; `kl` is
+KL(Q||P) of pacdp checkpoints, empty for DP), and the paper's
 summary statistic (`summary.json`, printed): per run the mean over its last 10 checkpoints, then mean +-
 std (sample std, ddof=1) over the runs of a method.
 
@@ -31,6 +32,7 @@ from lerobot.envs.configs import EnvConfig
 from tqdm.auto import tqdm
 
 from lerobot_pacdp.atomic_io import write_text_atomic
+from lerobot_pacdp.bayesian_layers import exact_kl
 from lerobot_pacdp.metrics.checkpoints import LoadedPolicy, MetricsError, list_checkpoints, load_policy, run_cli
 from lerobot_pacdp.metrics.data import DatasetArgs, EvaluationData, resolve_split
 from lerobot_pacdp.metrics.nll_bound import NllAccumulator, NllBound, nll_step_errors
@@ -46,11 +48,12 @@ logger = logging.getLogger(__name__)
 METRICS = {  # column -> axis label
     "npe": "noise prediction error",
     "nll_bound": "NLL bound (nats / dim)",
+    "kl": "KL(Q||P) (nats)",  # pacdp only: how far the posterior moved from the prior (Eq. 9's complexity)
     "success_rate": "success rate",
 }
 CSV_COLUMNS = [
     "label", "run", "step", "checkpoint", "policy_type", "npe", "npe_sem", "npe_examples",
-    "nll_bound", "nll_baseline", "nll_examples", "success_rate",
+    "nll_bound", "nll_baseline", "nll_examples", "kl", "success_rate",
 ]  # fmt: skip
 
 
@@ -153,7 +156,7 @@ def summarize(rows: list[dict], last_k: int = 10) -> dict:
         for metric in METRICS:
             per_run = []
             for run_rows in runs.values():
-                values = _finite([r[metric] for r in sorted(run_rows, key=lambda r: r["step"])])[-last_k:]
+                values = _finite([r.get(metric) for r in sorted(run_rows, key=lambda r: r["step"])])[-last_k:]
                 if values:
                     per_run.append(sum(values) / len(values))
             if per_run:
@@ -177,12 +180,12 @@ def plot_metrics(rows: list[dict], output_dir: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    present = [m for m in METRICS if _finite([r[m] for r in rows])]
+    present = [m for m in METRICS if _finite([r.get(m) for r in rows])]
 
     def draw(ax, metric: str) -> None:
         by_label: dict[str, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
         for row in rows:
-            if row[metric] is not None and math.isfinite(row[metric]):
+            if row.get(metric) is not None and math.isfinite(row[metric]):
                 by_label[row["label"]][row["step"]].append(row[metric])
         for label, by_step in sorted(by_label.items()):
             steps = sorted(by_step)
@@ -194,6 +197,8 @@ def plot_metrics(rows: list[dict], output_dir: Path) -> list[Path]:
         baselines = _finite([row["nll_baseline"] for row in rows]) if metric == "nll_bound" else []
         if baselines:  # what a denoiser no better than the Gaussian gets (the paper's -3.24 plateau on PushT)
             ax.axhline(sum(baselines) / len(baselines), color="gray", linestyle="--", label="Gaussian baseline $h_G/d$")
+        if metric == "kl" and all(v > 0 for r in rows if (v := r.get("kl")) is not None):
+            ax.set_yscale("log")  # BDP's KL grows by orders of magnitude over PAC-DP's
         ax.set_xlabel("training step")
         ax.set_ylabel(METRICS[metric])
         ax.grid(alpha=0.3)
@@ -325,6 +330,7 @@ def run_sweep(cfg: SweepConfig) -> tuple[list[dict], dict]:
                         "nll_bound": result.nll.nats_per_dim if result.nll else None,
                         "nll_baseline": result.nll.baseline_nats_per_dim if result.nll else None,
                         "nll_examples": result.nll.num_examples if result.nll else None,
+                        "kl": exact_kl(loaded.policy.unet) if loaded.policy_type == "pacdp" else None,
                         "success_rate": success_rate(loaded, envs, cfg.env, cfg.eval_episodes, cfg.seed)
                         if envs
                         else None,
@@ -349,7 +355,7 @@ def _write_tables(rows: list[dict], settings: dict, output_dir: Path) -> None:
     table = io.StringIO()
     writer = csv.DictWriter(table, fieldnames=CSV_COLUMNS, lineterminator="\n")
     writer.writeheader()
-    writer.writerows({k: ("" if row[k] is None else row[k]) for k in CSV_COLUMNS} for row in rows)
+    writer.writerows({k: ("" if row.get(k) is None else row[k]) for k in CSV_COLUMNS} for row in rows)
     write_text_atomic(output_dir / "metrics.csv", table.getvalue())
     write_text_atomic(output_dir / "metrics.json", json.dumps({"settings": settings, "rows": rows}, indent=2))
 

@@ -10,9 +10,10 @@
   jobs = 54 min of training, plus ~1 min data conversion and ~5 min of metrics: about an hour.
   The learning rate is raised to 1e-3 with a 50-step warm-up (the diffusion preset's 1e-4 / 500 steps
   is sized for 10^5-10^6 steps) so 1200 steps fit the data well and DP can overfit within the run.
-  `long_pair=true` instead trains BDP and PAC-DP (and DP beside them) on 20 demos for 24k steps (~3 h each
-  at 0.45 s/step),
-  `max_chunk_steps` at a time, resumable across sessions.
+  `long_pair=true` instead trains BDP and PAC-DP (and DP beside them) on 20 demos for 20k steps at batch 16
+  (320k samples, ~130 epochs of the 20 demos). Batch 16 roughly halves the data-loading-bound step
+  (0.24 s/step per core), so the three runs fit in one ~2 h CPU session (`jobs=3`: ~8.4 steps/s in all)
+  instead of ~2.5 h each at batch 64. `long_pair_chunk_steps` at a time, resumable across sessions.
 - `paper`: paper Sec. IV on a GPU: PushT (configs/pusht/pacdp_paper.json: 10^6 steps, batch 256, paper
   U-Net) and the five robomimic tasks (`robomimic.train_configs.paper_config`, steps and lambda from
   `robomimic.tasks.TASKS`), 60 held-out demos per seed, training demos 20/40/80/140 (the paper's "200
@@ -103,6 +104,7 @@ class Preset:
     long_pair_steps: int = 0
     long_pair_save_freq: int = 0
     long_pair_chunk_steps: int | None = None  # each invocation trains a long run this many more steps
+    long_pair_batch_size: int | None = None  # None: the task's own batch size
 
     def task(self, name: str) -> TaskPreset:
         for task in self.tasks:
@@ -143,9 +145,10 @@ def _cpu_preset() -> Preset:
         success_last_k=1,
         device="cpu",
         perf_rows=(("cpu", 64), ("paper", 8)),
-        long_pair_steps=24_000,
+        long_pair_steps=20_000,
         long_pair_save_freq=1_000,
         long_pair_chunk_steps=6_000,
+        long_pair_batch_size=16,
     )
 
 

@@ -475,9 +475,10 @@ def resolve_preset(cfg: StudyConfig) -> Preset:
     if cfg.long_pair:
         if preset.long_pair_steps < 1:
             raise StudyError(f"preset {preset.name!r} defines no long pair.")
+        batch = {} if preset.long_pair_batch_size is None else {"batch_size": preset.long_pair_batch_size}
         tasks = tuple(
             dataclasses.replace(t, demos=(preset.long_pair_demos,), steps=preset.long_pair_steps,
-                                save_freq=preset.long_pair_save_freq)
+                                save_freq=preset.long_pair_save_freq, train_config={**t.train_config, **batch})
             for t in preset.tasks[:1]
         )  # fmt: skip
         preset = dataclasses.replace(preset, tasks=tasks, seeds=preset.seeds[:1])
