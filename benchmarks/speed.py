@@ -6,6 +6,7 @@ CUDA: torch.cuda.max_memory_allocated). Prints a table and writes JSON to benchm
 
     python benchmarks/speed.py --preset cpu          # 2 CPU cores, small U-Net
     python benchmarks/speed.py --preset paper        # paper U-Net (256/512/1024), batch 256, GPU
+    python benchmarks/speed.py --preset paper --batch-size 8 --train-steps 10 --latency-calls 5  # on 2 CPU cores
 """
 
 import argparse
@@ -25,6 +26,7 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 
+from lerobot_pacdp.atomic_io import write_text_atomic
 from lerobot_pacdp.configuration_pacdp import PacdpConfig
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
 
@@ -197,10 +199,13 @@ def main() -> None:
     parser.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--batch-size", type=int, help="override the preset's batch size")
+    parser.add_argument("--train-steps", type=int, help="override the preset's timed training steps per method")
+    parser.add_argument("--latency-calls", type=int, help="override the preset's timed action chunks per method")
     parser.add_argument("--memory-child", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    if args.batch_size:
-        PRESETS[args.preset] = dataclasses.replace(PRESETS[args.preset], batch_size=args.batch_size)
+    overrides = {"batch_size": args.batch_size, "train_steps": args.train_steps, "latency_calls": args.latency_calls}
+    overrides = {k: v for k, v in overrides.items() if v}
+    PRESETS[args.preset] = dataclasses.replace(PRESETS[args.preset], **overrides)
     if args.memory_child:
         peak_memory_child(args.memory_child, args.preset, args.device)
         return
@@ -233,7 +238,7 @@ def main() -> None:
     print(f"{'peak memory (MiB)':<22}{memory['dp_peak_bytes']/2**20:>12.1f}{memory['pacdp_peak_bytes']/2**20:>12.1f}{ratios['peak_memory']:>8.2f}{'':>8}")
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     out = RESULTS_DIR / f"speed_{args.preset}_b{preset.batch_size}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
-    out.write_text(json.dumps(result, indent=2))
+    write_text_atomic(out, json.dumps(result, indent=2))
     print(f"wrote {out}")
 
 

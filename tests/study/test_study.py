@@ -239,3 +239,26 @@ def test_tiny_study_end_to_end_through_lerobot_train(tmp_path, monkeypatch):
     markdown = (tmp_path / "results" / "tables.md").read_text()
     assert "Table I" in markdown and "Performance" in markdown
     assert (tmp_path / "results" / "figures" / "main_pusht_d003" / "npe.png").is_file()
+
+
+def test_performance_table_runs_each_rows_benchmark_call_and_reads_its_ratios(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_speed_run(command, check):
+        args = command[2:]
+        calls.append(args)
+        batch = int(args[args.index("--batch-size") + 1])
+        ratios = {"train_step": 1.5 + batch / 100, "mean_mode_latency": 1.0, "sample_mode_latency": 1.25, "peak_memory": 2.0}
+        result = {"config": {"down_dims": [8, 16]}, "device": "test cpu", "ratios_pacdp_over_dp": ratios}
+        (tmp_path / f"speed_{args[1]}_b{batch}_cpu.json").write_text(json.dumps(result))
+
+    monkeypatch.setattr(tables, "SPEED_RESULTS", tmp_path)
+    monkeypatch.setattr(tables.subprocess, "run", fake_speed_run)
+    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
+    preset = get_preset("cpu")
+    lines = tables.performance_table(preset, measure=True).splitlines()
+    assert [c[:4] for c in calls] == [["--preset", r.speed_preset, "--batch-size", str(r.batch_size)] for r in preset.perf_rows]
+    assert calls[1][-4:] == ["--train-steps", "10", "--latency-calls", "5"]  # the paper U-Net row on CPU is short
+    assert lines[-1] == "| paper (8/16) | 8 | test cpu | 1.58 | 1.00 | 1.25 | 2.00 |"
+    unmeasured = tables.performance_table(dataclasses.replace(preset, perf_rows=preset.perf_rows[:1]), measure=False)
+    assert "| cpu (8/16) | 64 | test cpu | 2.14 |" in unmeasured

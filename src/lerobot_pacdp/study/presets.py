@@ -78,6 +78,15 @@ class TaskPreset:
 
 
 @dataclass(frozen=True)
+class PerfRow:
+    """One row of the performance table: a `benchmarks/speed.py` call (U-Net preset, batch, extra flags)."""
+
+    speed_preset: str
+    batch_size: int
+    extra_args: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
 class Preset:
     """A whole study: tasks x demos x seeds x methods (DP, BDP over rho, PAC-DP over lambda x rho)."""
 
@@ -97,8 +106,7 @@ class Preset:
     success_episodes: int  # rollouts per evaluated checkpoint (0: no success rate)
     success_last_k: int  # success rate on each run's last k checkpoints only (rollouts are costly)
     device: str | None
-    # Performance table rows: (benchmarks/speed.py preset, batch size).
-    perf_rows: tuple[tuple[str, int], ...]
+    perf_rows: tuple[PerfRow, ...]  # the performance table
     # The long BDP / PAC-DP pair (`--long_pair=true`).
     long_pair_demos: int = 20
     long_pair_steps: int = 0
@@ -144,7 +152,8 @@ def _cpu_preset() -> Preset:
         success_episodes=10,
         success_last_k=1,
         device="cpu",
-        perf_rows=(("cpu", 64), ("paper", 8)),
+        # The paper U-Net takes ~15 s per PAC-DP step on these 2 cores: 10 timed steps and 5 chunks each.
+        perf_rows=(PerfRow("cpu", 64), PerfRow("paper", 8, ("--train-steps", "10", "--latency-calls", "5"))),
         long_pair_steps=20_000,
         long_pair_save_freq=1_000,
         long_pair_chunk_steps=6_000,
@@ -189,7 +198,7 @@ def _paper_preset() -> Preset:
         success_episodes=1000,
         success_last_k=10,
         device=None,
-        perf_rows=(("paper", 256),),
+        perf_rows=(PerfRow("paper", 256),),
         long_pair_demos=20,
         long_pair_steps=pusht["steps"],
         long_pair_save_freq=pusht["save_freq"],

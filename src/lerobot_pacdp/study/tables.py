@@ -268,12 +268,13 @@ def performance_table(preset: Preset, measure: bool) -> str:
     device = "cuda" if torch.cuda.is_available() else "cpu"
     lines = ["| U-Net preset | batch | device | train step | mean-mode chunk | sample-mode chunk | peak memory |",
              "|---|---|---|---|---|---|---|"]  # fmt: skip
-    for speed_preset, batch in preset.perf_rows:
+    for row in preset.perf_rows:
+        speed_preset, batch = row.speed_preset, row.batch_size
         result_file = SPEED_RESULTS / f"speed_{speed_preset}_b{batch}_{device}.json"
         if measure:
-            logger.info("performance: benchmarks/speed.py --preset %s --batch-size %d on %s", speed_preset, batch, device)
-            subprocess.run([sys.executable, str(SPEED_SCRIPT), "--preset", speed_preset, "--batch-size", str(batch),
-                            "--device", device], check=True)  # fmt: skip
+            args = ["--preset", speed_preset, "--batch-size", str(batch), "--device", device, *row.extra_args]
+            logger.info("performance: benchmarks/speed.py %s", " ".join(args))
+            subprocess.run([sys.executable, str(SPEED_SCRIPT), *args], check=True)
         if not result_file.is_file():
             lines.append(f"| {speed_preset} | {batch} | {device} | not measured (`pacdp-study --perf=true`) | | | |")
             continue
