@@ -258,6 +258,44 @@ def plot_reference_curves(rows: list[dict], references: dict, figures_dir: Path)
         plot_metrics(panel_rows, directory)
 
 
+# ------------------------------------------------------------------------------------ training dynamics
+
+
+def dynamics_rows(rows: list[dict]) -> list[dict]:
+    """Per run: where its held-out NPE was lowest, how far it rose after that, and its final NLL bound and KL.
+
+    The question of the long runs: does DP overfit (NPE turns up after its best step) and does the
+    KL term keep PAC-DP from doing so where BDP does not (paper Sec. IV, Fig. 3)."""
+    by_run: dict[str, list[dict]] = defaultdict(list)
+    for row in rows:
+        if row.get("npe") is not None and math.isfinite(row["npe"]):
+            by_run[row["run"]].append(row)
+    result = []
+    for run_rows in by_run.values():
+        run_rows.sort(key=lambda r: r["step"])
+        best, last = min(run_rows, key=lambda r: r["npe"]), run_rows[-1]
+        result.append({
+            "run": last["name"], "method": last["method"], "demos": last["demos"], "seed": last["seed"],
+            "best_step": best["step"], "best_npe": best["npe"], "last_step": last["step"], "last_npe": last["npe"],
+            "npe_rise": last["npe"] / best["npe"] - 1.0, "last_nll_bound": last.get("nll_bound"),
+            "last_kl": last.get("kl"),
+        })  # fmt: skip
+    return result
+
+
+def render_dynamics(dynamics: list[dict]) -> str:
+    def num(value, digits: int) -> str:
+        return "--" if value is None else f"{value:.{digits}g}"
+
+    lines = ["## Training dynamics: best held-out NPE and what followed it (one row per run)", "",
+             "| run | method | best NPE | at step | last step | NPE there | rise after best | NLL bound there | KL(Q‖P) there |",
+             "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for d in dynamics:
+        lines.append(f"| {d['run']} | {d['method']} | {d['best_npe']:.4f} | {d['best_step']} | {d['last_step']} | "
+                     f"{d['last_npe']:.4f} | {d['npe_rise']:+.1%} | {num(d['last_nll_bound'], 4)} | {num(d['last_kl'], 4)} |")  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
 # ------------------------------------------------------------------------------------------ performance
 
 
@@ -302,9 +340,11 @@ def report(preset: Preset, specs: list[RunSpec], output_dir: Path, long_pair: bo
     references = {t.name: (t.reference_kl_weight, preset.reference_rho) for t in preset.tasks}
     per_run = per_run_values(rows, preset.last_k)
     cells = build_tables(seed_statistics(per_run), references)
-    markdown = render_markdown(cells, preset.last_k) + "\n" + performance_table(preset, perf)
+    dynamics = dynamics_rows(rows)
+    markdown = "\n".join([render_markdown(cells, preset.last_k), render_dynamics(dynamics), performance_table(preset, perf)])
     write_text_atomic(results / "runs.csv", _csv(per_run))
+    write_text_atomic(results / "dynamics.csv", _csv(dynamics))
     write_text_atomic(results / "tables.csv", _csv(cells))
     write_text_atomic(results / "tables.md", markdown)
     plot_reference_curves(rows, references, results / "figures")
-    logger.info("wrote %s (tables.md, tables.csv, runs.csv, figures/)\n%s", results, markdown)
+    logger.info("wrote %s (tables.md, tables.csv, runs.csv, dynamics.csv, figures/)\n%s", results, markdown)
