@@ -278,3 +278,22 @@ def test_dynamics_find_the_best_checkpoint_and_the_rise_after_it():
     markdown = tables.render_dynamics([dp, pac])
     assert "| dp | DP | 0.0400 | 2000 | 3000 | 0.0600 | +50.0% | -2.06 | -- |" in markdown
     assert "| pac | PAC-DP | 0.0450 | 2000 | 2000 | 0.0450 | +0.0% | -2.045 | 12 |" in markdown
+
+
+def test_unfinished_runs_are_reported_only_when_asked(tmp_path, monkeypatch):
+    monkeypatch.setattr(runner, "POLL_S", 0.05)
+    monkeypatch.setenv("FAKE_TRAINER_FAIL_AT", "4")  # stopped after its step-4 checkpoint of 6
+    preset = dataclasses.replace(_tiny_preset(demos=(2,), seeds=(0,)), success_episodes=0)
+    specs = plan_task(preset.tasks[0], preset, num_episodes=8)[:1]
+    _write_requests(specs, preset, tmp_path)
+    Executor(preset, tmp_path, FAKE_TRAINER, None).run(specs)
+    swept = []
+
+    def fake_sweep(cfg):
+        swept.append(cfg.runs)
+        return [{"label": specs[0].name, "run": cfg.runs, "step": 4, "npe": 0.1}], {}
+
+    monkeypatch.setattr(tables, "run_sweep", fake_sweep)
+    assert tables.evaluate_runs(preset, specs, tmp_path) == [] and swept == []
+    (row,) = tables.evaluate_runs(preset, specs, tmp_path, unfinished=True)
+    assert swept == [str(specs[0].train_dir(tmp_path))] and row["step"] == 4 and row["method"] == specs[0].method

@@ -465,6 +465,7 @@ class StudyConfig:
     max_chunk_steps: int | None = None  # stop each run after this many more steps (rerun to continue)
     train: bool = True  # false: only (re)compute metrics and tables of finished runs
     metrics: bool = True  # false: train only
+    report_unfinished: bool = False  # also report runs stopped before their last step, up to their last checkpoint
     success_episodes: int | None = None  # rollouts per evaluated checkpoint (0: no success rate)
     perf: bool = False  # also (re)measure the performance table with benchmarks/speed.py
     trainer: str | None = None  # command replacing lerobot-train (for tests); its args are the same
@@ -572,7 +573,7 @@ def run_study(cfg: StudyConfig) -> int:
     if cfg.metrics:
         from lerobot_pacdp.study.tables import report
 
-        report(preset, specs, output_dir, long_pair=cfg.long_pair, perf=cfg.perf)
+        report(preset, specs, output_dir, long_pair=cfg.long_pair, perf=cfg.perf, unfinished=cfg.report_unfinished)
     return 1 if failed else 0
 
 

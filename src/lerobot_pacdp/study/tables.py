@@ -47,11 +47,13 @@ def _spec_fields(spec: RunSpec) -> dict:
             "kl_weight": spec.kl_weight, "prior_rho": spec.prior_rho, "name": spec.name}  # fmt: skip
 
 
-def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path) -> list[dict]:
-    """One row per checkpoint of every finished run (the sweep's columns plus the run's spec)."""
+def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfinished: bool = False) -> list[dict]:
+    """One row per checkpoint of every finished run (the sweep's columns plus the run's spec); with
+    `unfinished`, also of runs stopped before their last step, up to their last checkpoint."""
+    wanted = ("done", "resume") if unfinished else ("done",)
     groups: dict[tuple, list[RunSpec]] = defaultdict(list)
     for spec in specs:
-        if run_status(spec, output_dir)[0] == "done":
+        if run_status(spec, output_dir)[0] in wanted:
             groups[(spec.group, spec.task, spec.seed)].append(spec)
     rows = []
     for (group, task, seed), runs in groups.items():
@@ -327,13 +329,21 @@ def performance_table(preset: Preset, measure: bool) -> str:
 # --------------------------------------------------------------------------------------------- report
 
 
-def report(preset: Preset, specs: list[RunSpec], output_dir: Path, long_pair: bool = False, perf: bool = False) -> None:
-    """Metrics of every finished run, then tables, CSVs and plots under `output_dir/results[_long]`."""
-    rows = evaluate_runs(preset, specs, output_dir)
+def report(
+    preset: Preset, specs: list[RunSpec], output_dir: Path, long_pair: bool = False, perf: bool = False,
+    unfinished: bool = False,
+) -> None:
+    """Metrics of every finished run (and unfinished ones with `unfinished`), then tables, CSVs and plots
+    under `output_dir/results[_long]`."""
+    rows = evaluate_runs(preset, specs, output_dir, unfinished)
     results = output_dir / ("results_long" if long_pair else "results")
     missing = len(specs) - len({r["run"] for r in rows})
     if missing:
         logger.warning("tables cover %d of %d runs: %d are not finished yet.", len(specs) - missing, len(specs), missing)
+    reported = {r["run"] for r in rows}
+    short = [s.name for s in specs if str(s.train_dir(output_dir)) in reported and run_status(s, output_dir)[0] != "done"]
+    if short:
+        logger.warning("reported before their last step (see last_step in runs.csv and the dynamics table): %s", short)
     if not rows:
         logger.warning("no finished run yet: no tables.")
         return
