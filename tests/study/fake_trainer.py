@@ -2,11 +2,13 @@
 
 Writes `checkpoints/<step>/{pretrained_model,training_state}` every `save_freq` steps and points `last`
 at each. FAKE_TRAINER_FAIL_AT=<step> exits 1 right after that checkpoint (an interrupted run);
-FAKE_TRAINER_CALLS=<file> gets one line per call; FAKE_TRAINER_SLEEP=<s> waits after each checkpoint.
+FAKE_TRAINER_KILL_AT=<step> sends itself SIGTERM there instead (a user stopping it); FAKE_TRAINER_CALLS=<file>
+gets one line per call; FAKE_TRAINER_SLEEP=<s> waits after each checkpoint.
 """
 
 import json
 import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -25,6 +27,7 @@ if os.environ.get("FAKE_TRAINER_CALLS"):
     with open(os.environ["FAKE_TRAINER_CALLS"], "a") as f:
         f.write(f"{config['policy']['type']} {out.parent.name} resume={resume} from={step}\n")
 fail_at = int(os.environ.get("FAKE_TRAINER_FAIL_AT", -1))
+kill_at = int(os.environ.get("FAKE_TRAINER_KILL_AT", -1))
 while step < config["steps"]:
     step = min(step + config["save_freq"], config["steps"])
     ckpt = out / "checkpoints" / f"{step:06d}"
@@ -40,4 +43,6 @@ while step < config["steps"]:
     print(f"Training: {step}/{config['steps']} [", flush=True)
     if step == fail_at:
         sys.exit(1)
+    if step == kill_at:
+        os.kill(os.getpid(), signal.SIGTERM)
     time.sleep(float(os.environ.get("FAKE_TRAINER_SLEEP", 0)))

@@ -297,3 +297,15 @@ def test_unfinished_runs_are_reported_only_when_asked(tmp_path, monkeypatch):
     assert tables.evaluate_runs(preset, specs, tmp_path) == [] and swept == []
     (row,) = tables.evaluate_runs(preset, specs, tmp_path, unfinished=True)
     assert swept == [str(specs[0].train_dir(tmp_path))] and row["step"] == 4 and row["method"] == specs[0].method
+
+
+def test_a_run_stopped_by_sigterm_is_paused_not_failed_and_resumes(tmp_path, monkeypatch):
+    monkeypatch.setattr(runner, "POLL_S", 0.05)
+    monkeypatch.setenv("FAKE_TRAINER_KILL_AT", "2")
+    preset = _tiny_preset(steps=6, save_freq=2, demos=(2,), seeds=(0,))
+    spec = plan_task(preset.tasks[0], preset, num_episodes=8)[0]
+    _write_requests([spec], preset, tmp_path)
+    outcome = Executor(preset, tmp_path, FAKE_TRAINER, None).run([spec])
+    assert outcome["paused"] == [spec] and not outcome["failed"] and run_status(spec, tmp_path) == ("resume", 2)
+    monkeypatch.delenv("FAKE_TRAINER_KILL_AT")
+    assert Executor(preset, tmp_path, FAKE_TRAINER, None).run([spec])["done"] == [spec]

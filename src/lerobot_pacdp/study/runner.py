@@ -42,6 +42,8 @@ METHODS = ("DP", "BDP", "PAC-DP")
 SPLIT_SALT = 20_260_523  # decorrelates the episode order from the training seed
 REQUEST_FILE, DONE_FILE, LOG_FILE = "train_request.json", "done.json", "train.log"
 POLL_S, HEARTBEAT_S = 2.0, 60.0
+# A run stopped by one of these (a user or scheduler ending it, not a crash) is paused: rerunning resumes it.
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
 @dataclass(frozen=True)
@@ -354,10 +356,11 @@ class Executor:
             outcome["done"].append(spec)
             logger.info("[done] %s/%s in %s (%s); %d/%d runs finished", spec.task, spec.name, _fmt_s(seconds), rate,
                         len(outcome["done"]), total)  # fmt: skip
-        elif run.stopped_by_us:
+        elif run.stopped_by_us or -run.process.returncode in STOP_SIGNALS:
             outcome["paused"].append(spec)
-            logger.info("[paused] %s/%s at step %d of %d after %s (%s); rerun to continue", spec.task, spec.name,
-                        reached, spec.steps, _fmt_s(seconds), rate)  # fmt: skip
+            by = "" if run.stopped_by_us else f" (stopped by {signal.Signals(-run.process.returncode).name})"
+            logger.info("[paused] %s/%s at step %d of %d after %s (%s)%s; rerun to continue", spec.task, spec.name,
+                        reached, spec.steps, _fmt_s(seconds), rate, by)  # fmt: skip
         else:
             outcome["failed"].append(spec)
             log = spec.run_dir(self.output_dir) / LOG_FILE
