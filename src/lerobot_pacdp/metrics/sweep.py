@@ -181,6 +181,7 @@ def plot_metrics(rows: list[dict], output_dir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     present = [m for m in METRICS if _finite([r.get(m) for r in rows])]
+    colors = {label: f"C{i}" for i, label in enumerate(sorted({r["label"] for r in rows}))}  # same in every panel
 
     def draw(ax, metric: str) -> None:
         by_label: dict[str, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
@@ -190,9 +191,9 @@ def plot_metrics(rows: list[dict], output_dir: Path) -> list[Path]:
         for label, by_step in sorted(by_label.items()):
             steps = sorted(by_step)
             stats = [_mean_std(by_step[s]) for s in steps]
-            (line,) = ax.plot(steps, [m for m, _ in stats], marker="o", markersize=3, label=label)
+            ax.plot(steps, [m for m, _ in stats], marker="o", markersize=3, label=label, color=colors[label])
             ax.fill_between(
-                steps, [m - s for m, s in stats], [m + s for m, s in stats], color=line.get_color(), alpha=0.2
+                steps, [m - s for m, s in stats], [m + s for m, s in stats], color=colors[label], alpha=0.2
             )
         baselines = _finite([row["nll_baseline"] for row in rows]) if metric == "nll_bound" else []
         if baselines:  # what a denoiser no better than the Gaussian gets (the paper's -3.24 plateau on PushT)
