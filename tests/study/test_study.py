@@ -146,12 +146,19 @@ def test_run_without_checkpoint_restarts_and_final_checkpoint_counts_as_done(tmp
     assert not (specs[1].run_dir(tmp_path) / runner.LOG_FILE).exists()  # never launched
 
 
-def test_chunked_runs_pause_at_a_checkpoint_and_continue(tmp_path, monkeypatch):
+def _one_fake_run(tmp_path: Path, monkeypatch, **trainer_env: str) -> tuple[Preset, RunSpec]:
+    """A 6-step run (checkpoint every 2) with its request written, for the stand-in trainer with `trainer_env`."""
     monkeypatch.setattr(runner, "POLL_S", 0.05)
-    monkeypatch.setenv("FAKE_TRAINER_SLEEP", "1.0")
+    for name, value in trainer_env.items():
+        monkeypatch.setenv(name, value)
     preset = _tiny_preset(steps=6, save_freq=2, demos=(2,), seeds=(0,))
     spec = plan_task(preset.tasks[0], preset, num_episodes=8)[0]
     _write_requests([spec], preset, tmp_path)
+    return preset, spec
+
+
+def test_chunked_runs_pause_at_a_checkpoint_and_continue(tmp_path, monkeypatch):
+    preset, spec = _one_fake_run(tmp_path, monkeypatch, FAKE_TRAINER_SLEEP="1.0")
     outcome = Executor(preset, tmp_path, FAKE_TRAINER, max_chunk_steps=3).run([spec])
     assert outcome["paused"] == [spec] and run_status(spec, tmp_path) == ("resume", 4)  # 3 steps -> checkpoint 4
     outcome = Executor(preset, tmp_path, FAKE_TRAINER, max_chunk_steps=3).run([spec])
@@ -300,11 +307,7 @@ def test_unfinished_runs_are_reported_only_when_asked(tmp_path, monkeypatch):
 
 
 def test_a_run_stopped_by_sigterm_is_paused_not_failed_and_resumes(tmp_path, monkeypatch):
-    monkeypatch.setattr(runner, "POLL_S", 0.05)
-    monkeypatch.setenv("FAKE_TRAINER_KILL_AT", "2")
-    preset = _tiny_preset(steps=6, save_freq=2, demos=(2,), seeds=(0,))
-    spec = plan_task(preset.tasks[0], preset, num_episodes=8)[0]
-    _write_requests([spec], preset, tmp_path)
+    preset, spec = _one_fake_run(tmp_path, monkeypatch, FAKE_TRAINER_KILL_AT="2")
     outcome = Executor(preset, tmp_path, FAKE_TRAINER, None).run([spec])
     assert outcome["paused"] == [spec] and not outcome["failed"] and run_status(spec, tmp_path) == ("resume", 2)
     monkeypatch.delenv("FAKE_TRAINER_KILL_AT")
