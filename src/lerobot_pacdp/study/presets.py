@@ -107,7 +107,7 @@ class Preset:
     success_last_k: int  # success rate on each run's last k checkpoints only (rollouts are costly)
     device: str | None
     perf_rows: tuple[PerfRow, ...]  # the performance table
-    # The long BDP / PAC-DP pair (`--long_pair=true`).
+    # The long runs (`--long_pair=true`): DP, BDP and PAC-DP at the reference point, first seed.
     long_pair_demos: int = 20
     long_pair_steps: int = 0
     long_pair_save_freq: int = 0

@@ -109,8 +109,8 @@ def plan_task(task: TaskPreset, preset: Preset, num_episodes: int, long_pair: bo
     kl_grid = [task.reference_kl_weight] + [k for k in preset.kl_weights if k != task.reference_kl_weight]
     rho_grid = list(preset.prior_rhos)
     if long_pair:
-        points = [("DP", None, None), ("BDP", 0.0, preset.reference_rho)]
-        points += [("PAC-DP", task.reference_kl_weight, preset.reference_rho)]
+        points = [("DP", None, None), ("BDP", 0.0, preset.reference_rho),
+                  ("PAC-DP", task.reference_kl_weight, preset.reference_rho)]  # fmt: skip
     else:
         points = [("DP", None, None)] + [("BDP", 0.0, r) for r in rho_grid]
         points += [("PAC-DP", k, r) for k in kl_grid for r in rho_grid]

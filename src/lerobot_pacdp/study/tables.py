@@ -337,10 +337,9 @@ def report(
     under `output_dir/results[_long]`."""
     rows = evaluate_runs(preset, specs, output_dir, unfinished)
     results = output_dir / ("results_long" if long_pair else "results")
-    missing = len(specs) - len({r["run"] for r in rows})
-    if missing:
-        logger.warning("tables cover %d of %d runs: %d are not finished yet.", len(specs) - missing, len(specs), missing)
     reported = {r["run"] for r in rows}
+    if len(reported) < len(specs):
+        logger.warning("tables cover %d of %d runs: the others are not finished yet.", len(reported), len(specs))
     short = [s.name for s in specs if str(s.train_dir(output_dir)) in reported and run_status(s, output_dir)[0] != "done"]
     if short:
         logger.warning("reported before their last step (see last_step in runs.csv and the dynamics table): %s", short)
