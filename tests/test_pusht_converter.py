@@ -75,11 +75,12 @@ def test_block_on_the_goal_is_a_success_and_far_away_is_not():
 
 
 def write_replay_buffer(path: Path, state: np.ndarray, action: np.ndarray, episode_ends: list[int]) -> Path:
-    """A Diffusion-Policy-style replay buffer (zarr v2, like the real one)."""
+    """A Diffusion-Policy-style replay buffer (zarr v2, like the real one: every chunk file written)."""
     group = zarr.open_group(str(path), mode="w", zarr_format=2)
-    group.create_array("data/state", data=np.asarray(state, dtype=np.float32))
-    group.create_array("data/action", data=np.asarray(action, dtype=np.float32))
-    group.create_array("meta/episode_ends", data=np.asarray(episode_ends, dtype=np.int64))
+    every_chunk = {"write_empty_chunks": True}
+    group.create_array("data/state", data=np.asarray(state, dtype=np.float32), config=every_chunk)
+    group.create_array("data/action", data=np.asarray(action, dtype=np.float32), config=every_chunk)
+    group.create_array("meta/episode_ends", data=np.asarray(episode_ends, dtype=np.int64), config=every_chunk)
     return path
 
 
@@ -218,8 +219,7 @@ def test_out_of_range_episodes_are_a_clear_error(tiny_zarr, tmp_path):
 
 
 def test_existing_output_needs_overwrite(tiny_zarr, tmp_path, monkeypatch):
-    out = tmp_path / "out"
-    out.mkdir()
+    out = convert_pusht_zarr(tiny_zarr, tmp_path / "out", episodes=[0])
     (out / "keep.txt").write_text("previous")
     with pytest.raises(PushTConversionError, match="already exists.*overwrite"):
         convert_pusht_zarr(tiny_zarr, out)
@@ -229,6 +229,16 @@ def test_existing_output_needs_overwrite(tiny_zarr, tmp_path, monkeypatch):
     assert not (out / "keep.txt").exists()
     assert load(out, monkeypatch).num_frames == 4
     assert no_leftovers(tmp_path) == ["out", "tiny.zarr"]
+
+
+def test_overwrite_refuses_a_directory_that_is_not_a_dataset(tiny_zarr, tmp_path):
+    out = tmp_path / "home"
+    out.mkdir()
+    (out / "thesis.tex").write_text("years of work")
+    with pytest.raises(PushTConversionError, match="is not a LeRobotDataset.*remove it yourself"):
+        convert_pusht_zarr(tiny_zarr, out, overwrite=True)
+    assert (out / "thesis.tex").read_text() == "years of work"
+    assert no_leftovers(tmp_path) == ["home", "tiny.zarr"]
 
 
 def test_a_failure_mid_conversion_leaves_nothing_behind(tiny_zarr, tmp_path, monkeypatch):
@@ -268,3 +278,154 @@ def test_cli_converts_and_says_how_to_train(tiny_zarr, tmp_path, capsys, monkeyp
     printed = capsys.readouterr().out
     assert str(out) in printed and f"--dataset.root={out}" in printed
     assert load(out, monkeypatch).num_episodes == 1
+
+
+# -- damaged or dangerous input, through the CLI ------------------------------------------------------------
+def run_cli(argv: list[str], capsys) -> tuple[int, str]:
+    """Exit status and error line of `pacdp-convert-pusht argv`: one line after the progress bar, no traceback."""
+    status = main([str(a) for a in argv])
+    err = capsys.readouterr().err.strip()
+    if status == 0:
+        return status, err
+    assert "Traceback" not in err and err.splitlines()[-1].startswith("pacdp-convert-pusht: error: "), err
+    return status, err.splitlines()[-1]
+
+
+@pytest.fixture
+def copied_pusht(tmp_path, pusht_zarr) -> Path:
+    """A private copy of the shared (read-only) replay buffer, to damage."""
+    import shutil
+
+    return Path(shutil.copytree(pusht_zarr, tmp_path / "pusht.zarr"))
+
+
+def test_cli_refuses_a_nan_action_naming_episode_key_and_index(tiny_zarr, tmp_path, capsys):
+    group = zarr.open_group(str(tiny_zarr), mode="r+")
+    action = group["data/action"][...]
+    action[5, 1] = np.nan  # episode 1 spans rows 3-6, so this is its frame 2
+    group["data/action"][...] = action
+
+    status, err = run_cli(["--zarr", tiny_zarr, "--output-root", tmp_path / "out"], capsys)
+    assert status == 2
+    assert "data/action[5, 1] is nan (episode 1, frame 2" in err and "--episodes" in err
+    assert no_leftovers(tmp_path) == ["tiny.zarr"]
+    # the damaged episode can be left out
+    assert run_cli(["--zarr", tiny_zarr, "--output-root", tmp_path / "out", "--episodes", "0"], capsys)[0] == 0
+
+
+def test_cli_refuses_an_infinite_state(tiny_zarr, tmp_path, capsys):
+    group = zarr.open_group(str(tiny_zarr), mode="r+")
+    state = group["data/state"][...]
+    state[1, 3] = -np.inf
+    group["data/state"][...] = state
+    status, err = run_cli(["--zarr", tiny_zarr, "--output-root", tmp_path / "out"], capsys)
+    assert status == 2 and "data/state[1, 3] is -inf (episode 0, frame 1" in err
+    assert no_leftovers(tmp_path) == ["tiny.zarr"]
+
+
+def test_cli_refuses_a_replay_buffer_with_a_missing_chunk_file(copied_pusht, tmp_path, capsys):
+    (copied_pusht / "data" / "action" / "5.0").unlink()  # zarr would read its 161 frames as (0, 0)
+    status, err = run_cli(["--zarr", copied_pusht, "--output-root", tmp_path / "out"], capsys)
+    assert status == 2
+    assert "chunk file data/action/5.0 is missing" in err and "rows 805-965" in err and "copy the replay buffer" in err
+    assert no_leftovers(tmp_path) == ["pusht.zarr"]
+
+
+def test_cli_names_a_garbled_chunk_without_pages_of_asyncio_noise(copied_pusht, tmp_path):
+    import subprocess
+    import sys
+
+    chunk = copied_pusht / "data" / "state" / "7.0"
+    chunk.write_bytes(chunk.read_bytes()[:16] + bytes(64) + chunk.read_bytes()[80:])
+    result = subprocess.run(
+        [sys.executable, "-m", "lerobot_pacdp.datasets.pusht_zarr", "--zarr", str(copied_pusht),
+         "--output-root", str(tmp_path / "out")],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr[-3000:]
+    assert "chunk file data/state/7.0" in lines[0] and "cannot be decoded" in lines[0]
+    assert no_leftovers(tmp_path) == ["pusht.zarr"]
+
+
+def test_cli_refuses_a_broken_zarray_file(copied_pusht, tmp_path, capsys):
+    (copied_pusht / "data" / "action" / ".zarray").write_text('{"chunks": [161, 2], "comp')
+    status, err = run_cli(["--zarr", copied_pusht, "--output-root", tmp_path / "out"], capsys)
+    assert status == 2 and "a .zarray file) is damaged (JSONDecodeError" in err
+    assert no_leftovers(tmp_path) == ["pusht.zarr"]
+
+
+@pytest.mark.parametrize(
+    ("output", "relation"), [(".", "is"), ("..", "contains"), ("data/converted", "lies inside")]
+)
+def test_cli_overwrite_never_deletes_the_input(tiny_zarr, tmp_path, capsys, output, relation):
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    status, err = run_cli(["--zarr", tiny_zarr, "--output-root", tiny_zarr / output, "--overwrite"], capsys)
+    assert status == 2 and f"{relation} the input" in err and "outside the input" in err
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+    assert pusht_zarr.load_replay_buffer(tiny_zarr).num_episodes == 2
+
+
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ("0-30000000", "'0-30000000' is out of range: the dataset has 2 episodes (0-1)"),
+        ("1-0", "'1-0' ends before it starts; write it as 0-1"),
+        ("0,x", "cannot parse episode selection"),
+    ],
+)
+def test_cli_refuses_bad_episode_selections_before_expanding_them(tiny_zarr, tmp_path, capsys, spec, message):
+    status, err = run_cli(["--zarr", tiny_zarr, "--output-root", tmp_path / "out", "--episodes", spec], capsys)
+    assert status == 2 and message in err
+    assert no_leftovers(tmp_path) == ["tiny.zarr"]
+
+
+def test_parse_episodes_refuses_ranges_beyond_any_dataset_without_expanding_them():
+    with pytest.raises(EpisodeSelectionError, match="no dataset has more than 1000000 episodes"):
+        parse_episodes("0-30000000")
+    assert parse_episodes("3-5", num_episodes=6) == [3, 4, 5]
+
+
+def test_cli_reports_a_full_disk_in_one_line_and_leaves_nothing(tiny_zarr, tmp_path, capsys, monkeypatch):
+    import errno
+
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    def disk_full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self.root / "data"))
+
+    monkeypatch.setattr(LeRobotDataset, "save_episode", disk_full)
+    status, err = run_cli(["--zarr", tiny_zarr, "--output-root", tmp_path / "out"], capsys)
+    assert status == 2 and "no space left on the device" in err and "free some space" in err
+    assert no_leftovers(tmp_path) == ["tiny.zarr"]
+
+
+def test_cli_leaves_nothing_when_interrupted(tiny_zarr, tmp_path, capsys, monkeypatch):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    def interrupt(self, *args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(LeRobotDataset, "save_episode", interrupt)
+    assert main(["--zarr", str(tiny_zarr), "--output-root", str(tmp_path / "out")]) == 130
+    last_line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last_line == "pacdp-convert-pusht: error: interrupted; nothing was written."
+    assert no_leftovers(tmp_path) == ["tiny.zarr"]
+
+
+def test_an_output_that_appears_during_the_conversion_is_kept(tiny_zarr, tmp_path, monkeypatch):
+    """Two conversions racing for one output root: the later one does not replace the earlier's dataset."""
+    real_write = pusht_zarr._write_dataset
+    out = tmp_path / "out"
+
+    def write_while_another_job_finishes(*args):
+        real_write(*args)
+        out.mkdir()
+        (out / "other.txt").write_text("the other job's dataset")
+
+    monkeypatch.setattr(pusht_zarr, "_write_dataset", write_while_another_job_finishes)
+    with pytest.raises(PushTConversionError, match="appeared while converting"):
+        convert_pusht_zarr(tiny_zarr, out)
+    assert (out / "other.txt").read_text() == "the other job's dataset"
+    assert no_leftovers(tmp_path) == ["out", "tiny.zarr"]

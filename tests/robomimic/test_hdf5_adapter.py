@@ -1,5 +1,6 @@
 """The robomimic hdf5 -> LeRobotDataset converter: layouts, splits, metadata, errors, CLI."""
 
+import errno
 import json
 
 import h5py
@@ -166,16 +167,16 @@ def test_failure_while_writing_leaves_nothing_and_keeps_a_previous_dataset(tmp_p
         convert_robomimic_hdf5(path, root)
 
     calls = {"n": 0}
-    original = hdf5_adapter.demo_frames
+    original = LeRobotDataset.save_episode
 
-    def flaky(demo, info):
+    def flaky(self, *args, **kwargs):
         calls["n"] += 1
         if calls["n"] == 2:
-            raise RuntimeError("disk full")
-        return original(demo, info)
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return original(self, *args, **kwargs)
 
-    monkeypatch.setattr(hdf5_adapter, "demo_frames", flaky)
-    with pytest.raises(RuntimeError, match="disk full"):
+    monkeypatch.setattr(LeRobotDataset, "save_episode", flaky)
+    with pytest.raises(OSError, match="No space left"):
         convert_robomimic_hdf5(path, root, overwrite=True, max_demos=2)
     assert _leftovers(tmp_path, "out") == ["out"]  # no staging directory left
     assert sorted(p.relative_to(root) for p in root.rglob("*")) == before  # the old dataset is intact
@@ -217,3 +218,74 @@ def test_legacy_env_args_helper_matches_released_files():
     args = legacy_env_args(TASKS["transport"])
     assert args["env_kwargs"]["env_configuration"] == "single-arm-opposed" and "env_version" not in args
     assert compat.file_generation(args) == ("1.4", None)
+
+
+# -- damaged or dangerous input, through the CLI ------------------------------------------------------------
+def _cli_error(argv, capsys) -> str:
+    """Run pacdp-convert-robomimic, expect exit 2 and return its one error line (after any progress bar)."""
+    assert hdf5_adapter.main([str(a) for a in argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err and err.splitlines()[-1].startswith("pacdp-convert-robomimic: error: "), err
+    return err.splitlines()[-1]
+
+
+@pytest.mark.parametrize(
+    ("key", "index", "value", "shown"),
+    [("actions", (5, 0), np.nan, "actions[5, 0] is nan"), ("obs/object", (2, 7), np.inf, "obs/object[2, 7] is inf")],
+)
+def test_cli_refuses_non_finite_demos_naming_demo_key_and_index(tmp_path, capsys, key, index, value, shown):
+    path, _ = write_legacy_file(tmp_path / "lift.hdf5", TASKS["lift"], num_demos=3, length=6)
+    with h5py.File(path, "a") as f:
+        f[f"data/demo_2/{key}"][index] = value
+    err = _cli_error(["--hdf5", path, "--output-root", tmp_path / "out"], capsys)
+    assert f"data/demo_2/{shown} (1 non-finite value(s) in it)" in err and "del f['data/demo_2']" in err
+    assert _leftovers(tmp_path, "out") == []
+
+
+def test_cli_refuses_a_file_with_a_zeroed_region_in_one_line(tmp_path, capsys):
+    path, _ = write_legacy_file(tmp_path / "lift.hdf5", TASKS["lift"], num_demos=3, length=6)
+    intact = path.read_bytes()
+    messages = []
+    for fraction in (0.1, 0.3, 0.5, 0.7, 0.9):  # wherever the damage lands: metadata, a group, a dataset
+        start = int(len(intact) * fraction)
+        path.write_bytes(intact[:start] + bytes(2048) + intact[start + 2048 :])
+        messages.append(_cli_error(["--hdf5", path, "--output-root", tmp_path / "out"], capsys))
+        assert _leftovers(tmp_path, "out") == []
+    assert any("is damaged: HDF5 cannot read part of it" in m and "download the file again" in m for m in messages)
+
+
+@pytest.mark.parametrize(
+    ("output", "relation"), [("{file}", "is"), ("{parent}", "contains"), ("{file}/x", "lies inside")]
+)
+def test_cli_overwrite_never_deletes_the_input(tmp_path, capsys, output, relation):
+    path, _ = write_legacy_file(tmp_path / "data" / "lift.hdf5", TASKS["lift"], num_demos=2)
+    before = path.read_bytes()
+    output = output.format(file=path, parent=path.parent)
+    err = _cli_error(["--hdf5", path, "--output-root", output, "--overwrite"], capsys)
+    assert f"{relation} the input" in err and "outside the input" in err
+    assert path.read_bytes() == before and sorted(p.name for p in path.parent.iterdir()) == ["lift.hdf5"]
+
+
+def test_cli_overwrite_refuses_a_directory_that_is_not_a_dataset(tmp_path, capsys):
+    path, _ = write_legacy_file(tmp_path / "lift.hdf5", TASKS["lift"], num_demos=1)
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "notes.txt").write_text("keep me")
+    err = _cli_error(["--hdf5", path, "--output-root", tmp_path / "out", "--overwrite"], capsys)
+    assert "is not a LeRobotDataset" in err
+    assert (tmp_path / "out" / "notes.txt").read_text() == "keep me"
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ('{"format": "lerobot_pacdp.robomimic/1", "demos": [', "robomimic.json is damaged"),
+        ('{"format": "lerobot_pacdp.robomimic/0", "demos": []}', "format 'lerobot_pacdp.robomimic/0', not"),
+        ("[1, 2]", "format 'list', not"),
+    ],
+)
+def test_cli_refuses_a_broken_or_foreign_dataset_metadata_file(tmp_path, capsys, content, message):
+    path, _ = write_legacy_file(tmp_path / "lift.hdf5", TASKS["lift"], num_demos=2)
+    root = convert_robomimic_hdf5(path, tmp_path / "ds")
+    (root / "meta" / "robomimic.json").write_text(content)
+    err = _cli_error(["--episodes-of", root, "--split", "train"], capsys)
+    assert message in err and "convert the dataset again" in err

@@ -7,6 +7,7 @@ and gym_pusht's reward / success recomputed from the block pose.
 """
 
 import argparse
+import itertools
 import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -15,14 +16,16 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_pacdp.atomic_io import staged_directory
-from lerobot_pacdp.datasets import quiet_dataset_writing
+from lerobot_pacdp.cli_errors import UserInputError, report_user_errors
+from lerobot_pacdp.datasets import output_root_problem, quiet_dataset_writing
 from lerobot_pacdp.datasets.pusht_geometry import NUM_KEYPOINTS, keypoints_and_coverage, reward_and_success
-from lerobot_pacdp.episodes import EpisodeSelectionError, parse_episodes
+from lerobot_pacdp.episodes import parse_episodes
 
 FPS = 10
 TASK = "Push the T-shaped block onto the T-shaped target."
 ROBOT_TYPE = "2d pointer"
 REQUIRED_KEYS = ("data/state", "data/action", "meta/episode_ends")
+_HINT = "pass the pusht_cchi_v7_replay.zarr directory from Diffusion Policy's pusht.zip"
 
 FEATURES = {
     "observation.state": {"dtype": "float32", "shape": (2,), "names": ["x", "y"]},
@@ -38,7 +41,7 @@ FEATURES = {
 }
 
 
-class PushTConversionError(ValueError):
+class PushTConversionError(UserInputError):
     """Bad converter input (path, replay-buffer layout, episode selection, output directory)."""
 
 
@@ -60,49 +63,97 @@ class ReplayBuffer:
 
 
 def load_replay_buffer(zarr_path: str | Path) -> ReplayBuffer:
-    """Read and validate the replay buffer, turning zarr failures into one-line errors that name the fix."""
+    """Read and validate the replay buffer, turning zarr failures into one-line errors that name the fix.
+
+    zarr reads a missing chunk file as its fill value without complaint, so every chunk is checked to
+    exist and read on its own (which also names a damaged one).
+    """
     import zarr
 
     path = Path(zarr_path).expanduser()
-    hint = "pass the pusht_cchi_v7_replay.zarr directory from Diffusion Policy's pusht.zip"
     if not path.exists():
-        raise PushTConversionError(f"{path} does not exist; {hint}.")
+        raise PushTConversionError(f"{path} does not exist; {_HINT}.")
     try:
         group = zarr.open_group(str(path), mode="r")
     except Exception as exc:
-        raise PushTConversionError(f"{path} is not a zarr store ({exc}); {hint}.") from None
-    missing = [key for key in REQUIRED_KEYS if not isinstance(group.get(key), zarr.Array)]
+        raise PushTConversionError(f"{path} is not a zarr store ({exc}); {_HINT}.") from None
+    try:
+        arrays = {key: group.get(key) for key in REQUIRED_KEYS}
+    except Exception as exc:  # a damaged .zarray raises JSONDecodeError, KeyError, TypeError, ...
+        raise PushTConversionError(
+            f"{path}: the metadata of an array (a .zarray file) is damaged ({type(exc).__name__}: {exc}); "
+            "copy the replay buffer again."
+        ) from None
+    missing = [key for key, array in arrays.items() if not isinstance(array, zarr.Array)]
     if missing:
         raise PushTConversionError(
-            f"{path} is not a Diffusion Policy replay buffer: missing array(s) {', '.join(missing)}; {hint}."
+            f"{path} is not a Diffusion Policy replay buffer: missing array(s) {', '.join(missing)}; {_HINT}."
         )
-    try:
-        state, action, ends = (np.asarray(group[key][...]) for key in REQUIRED_KEYS)
-    except Exception as exc:
-        raise PushTConversionError(f"{path}: could not read the replay buffer ({exc}); is it complete?") from None
-
+    state, action = arrays["data/state"], arrays["data/action"]
     if state.ndim != 2 or state.shape[1] != 5:
         raise PushTConversionError(
             f"{path}: data/state has shape {state.shape}, expected (N, 5) = agent x, y, block x, y, angle; "
             "is this a PushT replay buffer?"
         )
-    if action.shape != (len(state), 2):
+    if action.shape != (state.shape[0], 2):
         raise PushTConversionError(
-            f"{path}: data/action has shape {action.shape}, expected ({len(state)}, 2) to match data/state."
+            f"{path}: data/action has shape {action.shape}, expected ({state.shape[0]}, 2) to match data/state."
         )
+    ends = _read_every_chunk(arrays["meta/episode_ends"], path)
     if (
         ends.ndim != 1
         or len(ends) == 0
         or not np.issubdtype(ends.dtype, np.integer)
         or ends[0] <= 0
         or np.any(np.diff(ends) <= 0)
-        or ends[-1] != len(state)
+        or ends[-1] != state.shape[0]
     ):
         raise PushTConversionError(
             f"{path}: meta/episode_ends (shape {ends.shape}, dtype {ends.dtype}) must be strictly increasing "
-            f"positive integers ending at the frame count {len(state)}; the replay buffer is corrupt."
+            f"positive integers ending at the frame count {state.shape[0]}; the replay buffer is corrupt."
         )
-    return ReplayBuffer(state=state, action=action, episode_ends=ends)
+    return ReplayBuffer(state=_read_every_chunk(state, path), action=_read_every_chunk(action, path), episode_ends=ends)
+
+
+def _read_every_chunk(array, store_root: Path) -> np.ndarray:
+    """The array's values, read chunk by chunk from a directory store; a missing or undecodable chunk is
+    an error naming it (reading one chunk at a time also keeps zarr's event loop from printing pages of
+    cancelled tasks after a failure)."""
+    values = np.empty(array.shape, dtype=array.dtype)
+    for coords in itertools.product(*(range(n) for n in array.cdata_shape)):
+        region = tuple(
+            slice(i * size, min((i + 1) * size, extent)) for i, size, extent in zip(coords, array.chunks, array.shape)
+        )
+        key = f"{array.path}/{array.metadata.encode_chunk_key(coords)}"
+        rows = f"rows {region[0].start}-{region[0].stop - 1}"
+        if not (store_root / key).is_file():
+            raise PushTConversionError(
+                f"{store_root}: chunk file {key} is missing, so zarr would read {rows} of {array.path} as "
+                f"{array.fill_value}; the copy is incomplete: copy the replay buffer again."
+            )
+        try:
+            values[region] = array[region]
+        except Exception as exc:  # codec errors differ by compressor
+            raise PushTConversionError(
+                f"{store_root}: chunk file {key} ({rows} of {array.path}) cannot be decoded ({exc}); the file is "
+                "damaged: copy the replay buffer again."
+            ) from None
+    return values
+
+
+def check_finite(buffer: ReplayBuffer, episodes: Iterable[int], source: Path) -> None:
+    """Refuse NaN or infinite states and actions in the selected episodes, naming the first one found."""
+    for index in episodes:
+        frames = buffer.episode(index)
+        for key, values in (("data/state", buffer.state[frames]), ("data/action", buffer.action[frames])):
+            bad = np.argwhere(~np.isfinite(values))
+            if len(bad):
+                frame, column = (int(n) for n in bad[0])
+                raise PushTConversionError(
+                    f"{source}: {key}[{frames.start + frame}, {column}] is {values[frame, column]} (episode {index}, "
+                    f"frame {frame}; {len(bad)} non-finite value(s) in this episode). Demonstrations must be finite: "
+                    f"repair the replay buffer or leave episode {index} out with --episodes."
+                )
 
 
 def episode_frames(state: np.ndarray, action: np.ndarray) -> dict[str, np.ndarray]:
@@ -165,30 +216,39 @@ def convert_pusht_zarr(
     zarr_path: str | Path,
     output_root: str | Path,
     repo_id: str = "local/pusht",
-    episodes: list[int] | None = None,
+    episodes: Sequence[int] | str | None = None,
     overwrite: bool = False,
     *,
     progress: bool = False,
 ) -> Path:
     """Convert the replay buffer (or the demos listed in `episodes`, renumbered from 0) to a LeRobotDataset.
 
-    The dataset is built in a hidden sibling directory and renamed into place only once finalized, so
-    `output_root` is either a complete dataset or untouched; with `overwrite`, a previous dataset there is
-    replaced only after the new one is complete. Returns the absolute output root.
+    `episodes` is a list of indices or a selection such as "0-19". The dataset is built in a hidden sibling
+    directory and renamed into place only once finalized, so `output_root` is either a complete dataset or
+    untouched; with `overwrite`, a previous dataset there is replaced only after the new one is complete
+    (never the input, nor anything that is not a dataset). Returns the absolute output root.
     """
-    buffer = load_replay_buffer(zarr_path)
+    source = Path(zarr_path).expanduser()
+    buffer = load_replay_buffer(source)
+    if isinstance(episodes, str):
+        episodes = parse_episodes(episodes, buffer.num_episodes)
     selected = _check_episodes(episodes, buffer.num_episodes)
     output_root = Path(output_root).expanduser().absolute()
-    if output_root.exists() and not overwrite:
-        raise PushTConversionError(
-            f"{output_root} already exists; choose another output root or pass overwrite=True (--overwrite)."
-        )
+    problem = output_root_problem(output_root, source, overwrite)
+    if problem:
+        raise PushTConversionError(problem)
+    check_finite(buffer, selected, source)
 
     from tqdm import tqdm
 
-    with staged_directory(output_root) as staging:
-        shown = tqdm(selected, desc="Converting PushT episodes", unit="episode", disable=not progress)
-        _write_dataset(buffer, shown, staging, repo_id)
+    try:
+        with staged_directory(output_root, replace_existing=overwrite) as staging:
+            shown = tqdm(selected, desc="Converting PushT episodes", unit="episode", disable=not progress)
+            _write_dataset(buffer, shown, staging, repo_id)
+    except FileExistsError:
+        raise PushTConversionError(
+            f"{output_root} appeared while converting (another conversion writing it?); it was left as it is."
+        ) from None
     return output_root
 
 
@@ -206,15 +266,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output root")
     args = parser.parse_args(argv)
     quiet_dataset_writing()
+    return report_user_errors(parser.prog, lambda: _convert_and_report(args))
 
-    try:
-        episodes = parse_episodes(args.episodes) if args.episodes is not None else None
-        root = convert_pusht_zarr(
-            args.zarr, args.output_root, args.repo_id, episodes, args.overwrite, progress=True
-        )
-    except (PushTConversionError, EpisodeSelectionError) as exc:
-        print(f"pacdp-convert-pusht: error: {exc}", file=sys.stderr)
-        return 2
+
+def _convert_and_report(args: argparse.Namespace) -> int:
+    root = convert_pusht_zarr(args.zarr, args.output_root, args.repo_id, args.episodes, args.overwrite, progress=True)
     print(f"Wrote the LeRobotDataset {args.repo_id} to {root}")
     print(
         "Train on it offline with:\n"

@@ -14,13 +14,16 @@ proprioception, -> `observation.state`) and `environment_state` (the `object` ve
 """
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from gymnasium.envs.registration import register, registry
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGE, OBS_STATE
 
+from lerobot_pacdp.cli_errors import UserInputError
 from lerobot_pacdp.robomimic import compat
+from lerobot_pacdp.robomimic.checkpoint_fit import check_checkpoint_fits_env
 from lerobot_pacdp.robomimic.tasks import FPS, TASK_NAMES, TASKS, get_task
 
 ENTRY_POINT = "lerobot_pacdp.robomimic.env:RobomimicEnv"
@@ -81,20 +84,36 @@ class RobomimicEnvConfig(EnvConfig):
         try:
             robomimic_task = get_task(self.task if self.task is not None else "")
         except ValueError:
-            raise ValueError(
+            raise UserInputError(
                 f"--env.task={self.task!r} is not a robomimic task; choose one of {', '.join(TASK_NAMES)}."
             ) from None
         self.task = robomimic_task.name
-        self.robosuite_compat = compat.normalize_generation(self.robosuite_compat)
+        try:
+            self.robosuite_compat = compat.normalize_generation(self.robosuite_compat)
+        except ValueError as exc:
+            raise UserInputError(f"--env.{exc}") from None
         if self.episode_length is None:
             self.episode_length = robomimic_task.episode_length
         if self.episode_length < 1:
-            raise ValueError(f"--env.episode_length must be >= 1, got {self.episode_length}.")
+            raise UserInputError(f"--env.episode_length must be >= 1, got {self.episode_length}.")
         self.features = {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(robomimic_task.action_dim,)),
             "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(robomimic_task.state_dim,)),
             "environment_state": PolicyFeature(type=FeatureType.ENV, shape=(robomimic_task.object_dim,)),
         }
+        self._check_policy_given_on_the_command_line()
+
+    def _check_policy_given_on_the_command_line(self) -> None:
+        """lerobot-eval builds this env before it loads `--policy.path`: check now that the checkpoint fits
+        the task (read from the command line as LeRobot's own EvalPipelineConfig reads it)."""
+        from lerobot.configs import parser
+
+        policy_path = parser.get_path_arg("policy")
+        if policy_path is None or not Path(policy_path).is_dir():
+            return
+        env_shapes = {self.features_map[key]: tuple(feature.shape) for key, feature in self.features.items()}
+        compat_given = parser.parse_arg("env.robosuite_compat") is not None
+        check_checkpoint_fits_env(Path(policy_path), env_shapes, self.task, self.robosuite_compat, compat_given)
 
     @property
     def package_name(self) -> str:

@@ -19,10 +19,11 @@ robosuite generation that recorded the file (which `--env.robosuite_compat` to e
 """
 
 import argparse
+import contextlib
 import json
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from lerobot_pacdp.atomic_io import staged_directory
-from lerobot_pacdp.datasets import quiet_dataset_writing
+from lerobot_pacdp.cli_errors import UserInputError, report_user_errors
+from lerobot_pacdp.datasets import output_root_problem, quiet_dataset_writing
 from lerobot_pacdp.robomimic import compat
 from lerobot_pacdp.robomimic.tasks import (
     FPS,
@@ -50,7 +52,7 @@ _HINT = (
 )
 
 
-class RobomimicConversionError(ValueError):
+class RobomimicConversionError(UserInputError):
     """Bad converter input: path, file layout, task, episode selection, output directory."""
 
 
@@ -92,59 +94,79 @@ def inspect_hdf5(hdf5_path: str | Path, task: str | None = None) -> RobomimicFil
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
-        raise RobomimicConversionError(f"{path} is not an HDF5 file ({exc}); {_HINT}.") from None
-    with f:
-        data = f.get("data")
-        if not isinstance(data, h5py.Group):
-            raise RobomimicConversionError(
-                f"{path} has no 'data' group, so it is not a robomimic dataset (top-level keys: "
-                f"{sorted(f.keys())}); {_HINT}."
-            )
-        if "env_args" not in data.attrs:
-            raise RobomimicConversionError(
-                f"{path}: the 'data' group has no env_args attribute. A raw robosuite demo.hdf5 must first go "
-                "through robomimic's conversion (scripts/conversion/convert_robosuite.py, then "
-                "scripts/dataset_states_to_obs.py to extract low-dim observations); or " + _HINT + "."
-            )
+        raise RobomimicConversionError(f"{path} is not an HDF5 file, or a truncated one ({exc}); {_HINT}.") from None
+    with f, _reading(path):
+        return _inspect_open_file(path, f, task)
+
+
+@contextlib.contextmanager
+def _reading(path: Path) -> Iterator[None]:
+    """Turn HDF5's errors for a damaged file (OSError, KeyError, RuntimeError) into one that says so."""
+    try:
+        yield
+    except RobomimicConversionError:
+        raise
+    except (OSError, KeyError, RuntimeError, ValueError) as exc:
+        raise RobomimicConversionError(
+            f"{path} is damaged: HDF5 cannot read part of it ({type(exc).__name__}: {exc}); copy or download the "
+            "file again."
+        ) from None
+
+
+def _inspect_open_file(path: Path, f, task: str | None) -> RobomimicFile:
+    import h5py
+
+    data = f.get("data")
+    if not isinstance(data, h5py.Group):
+        raise RobomimicConversionError(
+            f"{path} has no 'data' group, so it is not a robomimic dataset (top-level keys: "
+            f"{sorted(f.keys())}); {_HINT}."
+        )
+    if "env_args" not in data.attrs:
+        raise RobomimicConversionError(
+            f"{path}: the 'data' group has no env_args attribute. A raw robosuite demo.hdf5 must first go "
+            "through robomimic's conversion (scripts/conversion/convert_robosuite.py, then "
+            "scripts/dataset_states_to_obs.py to extract low-dim observations); or " + _HINT + "."
+        )
+    try:
+        env_args = json.loads(_decode(data.attrs["env_args"]))
+        env_name = env_args["env_name"]
+    except (ValueError, TypeError, KeyError) as exc:
+        raise RobomimicConversionError(
+            f"{path}: data.attrs['env_args'] is not robomimic's JSON with an env_name ({exc}); is the file "
+            "complete?"
+        ) from None
+    file_task = task_for_env_name(env_name)
+    if task is not None:
         try:
-            env_args = json.loads(_decode(data.attrs["env_args"]))
-            env_name = env_args["env_name"]
-        except (ValueError, TypeError, KeyError) as exc:
+            wanted = get_task(task)
+        except ValueError as exc:
+            raise RobomimicConversionError(str(exc)) from None
+        if file_task is not None and file_task is not wanted:
             raise RobomimicConversionError(
-                f"{path}: data.attrs['env_args'] is not robomimic's JSON with an env_name ({exc}); is the file "
-                "complete?"
-            ) from None
-        file_task = task_for_env_name(env_name)
-        if task is not None:
-            try:
-                wanted = get_task(task)
-            except ValueError as exc:
-                raise RobomimicConversionError(str(exc)) from None
-            if file_task is not None and file_task is not wanted:
-                raise RobomimicConversionError(
-                    f"{path} holds {file_task.name} demos (robosuite env {env_name}), not {wanted.name}; drop "
-                    f"--task or pass --task {file_task.name}."
-                )
-            file_task = wanted
-        if file_task is None:
-            raise RobomimicConversionError(
-                f"{path} was recorded in robosuite env {env_name!r}, which is none of the supported tasks "
-                f"({', '.join(TASK_NAMES)}); pass --task to convert it as one of them."
+                f"{path} holds {file_task.name} demos (robosuite env {env_name}), not {wanted.name}; drop "
+                f"--task or pass --task {file_task.name}."
             )
+        file_task = wanted
+    if file_task is None:
+        raise RobomimicConversionError(
+            f"{path} was recorded in robosuite env {env_name!r}, which is none of the supported tasks "
+            f"({', '.join(TASK_NAMES)}); pass --task to convert it as one of them."
+        )
 
-        demos = tuple(sorted((k for k in data.keys() if isinstance(data[k], h5py.Group)), key=_demo_sort_key))
-        if not demos:
-            raise RobomimicConversionError(f"{path} has no demonstrations under 'data'; {_HINT}.")
-        lengths = tuple(_check_demo(path, data[name], name, file_task) for name in demos)
+    demos = tuple(sorted((k for k in data.keys() if isinstance(data[k], h5py.Group)), key=_demo_sort_key))
+    if not demos:
+        raise RobomimicConversionError(f"{path} has no demonstrations under 'data'; {_HINT}.")
+    lengths = tuple(_check_demo(path, data[name], name, file_task) for name in demos)
 
-        masks: dict[str, tuple[str, ...]] = {}
-        mask_group = f.get("mask")
-        if isinstance(mask_group, h5py.Group):
-            for name in mask_group.keys():
-                values = np.asarray(mask_group[name][()]).reshape(-1)
-                masks[name] = tuple(_decode(v) for v in values)
-        generation, version = compat.file_generation(env_args, _attr(data, "repository_version"))
-        reward_shaping = bool((env_args.get("env_kwargs") or {}).get("reward_shaping", False))
+    masks: dict[str, tuple[str, ...]] = {}
+    mask_group = f.get("mask")
+    if isinstance(mask_group, h5py.Group):
+        for name in mask_group.keys():
+            values = np.asarray(mask_group[name][()]).reshape(-1)
+            masks[name] = tuple(_decode(v) for v in values)
+    generation, version = compat.file_generation(env_args, _attr(data, "repository_version"))
+    reward_shaping = bool((env_args.get("env_kwargs") or {}).get("reward_shaping", False))
     return RobomimicFile(path, file_task, env_args, generation, version, demos, lengths, masks, reward_shaping)
 
 
@@ -223,19 +245,34 @@ def demo_frames(demo, info: RobomimicFile) -> dict[str, np.ndarray]:
     """
     task = info.task
     obs = demo["obs"]
-    state = np.concatenate([np.asarray(obs[key][()], dtype=np.float64) for key in task.proprio_keys], axis=1)
-    rewards = np.asarray(demo["rewards"][()], dtype=np.float64).reshape(-1)
+    state = np.concatenate([_finite(info, demo, f"obs/{key}") for key in task.proprio_keys], axis=1)
+    rewards = _finite(info, demo, "rewards").reshape(-1)
     success = rewards >= 1.0 - 1e-6 if info.reward_shaping else rewards > 0
     done = np.zeros(len(rewards), dtype=bool)
     done[-1] = True
     return {
         "observation.state": state.astype(np.float32),
-        "observation.environment_state": np.asarray(obs["object"][()], dtype=np.float32),
-        "action": np.asarray(demo["actions"][()], dtype=np.float32),
+        "observation.environment_state": _finite(info, demo, "obs/object").astype(np.float32),
+        "action": _finite(info, demo, "actions").astype(np.float32),
         "next.reward": rewards.astype(np.float32)[:, None],
         "next.success": success[:, None],
         "next.done": done[:, None],
     }
+
+
+def _finite(info: RobomimicFile, demo, key: str) -> np.ndarray:
+    """The demo's dataset `key` as float64, refused if any value is NaN or infinite (naming the first)."""
+    values = np.asarray(demo[key][()], dtype=np.float64)
+    bad = np.argwhere(~np.isfinite(values))
+    if len(bad):
+        name = demo.name.lstrip("/")
+        index = ", ".join(str(int(i)) for i in bad[0])
+        raise RobomimicConversionError(
+            f"{info.path}: {name}/{key}[{index}] is {values[tuple(bad[0])]} ({len(bad)} non-finite value(s) in "
+            f"it). Demonstrations must be finite: repair that demo, or delete it (h5py: del f['{name}']) and "
+            "convert again."
+        )
+    return values
 
 
 def dataset_metadata(info: RobomimicFile, demos: Sequence[str]) -> dict[str, Any]:
@@ -286,14 +323,18 @@ def convert_robomimic_hdf5(
         demos = demos[:max_demos]
     repo_id = repo_id or f"local/robomimic_{info.task.name}"
     output_root = Path(output_root).expanduser().absolute()
-    if output_root.exists() and not overwrite:
+    problem = output_root_problem(output_root, info.path, overwrite)
+    if problem:
+        raise RobomimicConversionError(problem)
+    try:
+        with staged_directory(output_root, replace_existing=overwrite) as staging:
+            _write_dataset(info, demos, staging, repo_id, progress)
+            meta = staging / "meta" / METADATA_FILE
+            meta.write_text(json.dumps(dataset_metadata(info, demos), indent=2) + "\n")
+    except FileExistsError:
         raise RobomimicConversionError(
-            f"{output_root} already exists; choose another output root or pass overwrite=True (--overwrite)."
-        )
-    with staged_directory(output_root) as staging:
-        _write_dataset(info, demos, staging, repo_id, progress)
-        meta = staging / "meta" / METADATA_FILE
-        meta.write_text(json.dumps(dataset_metadata(info, demos), indent=2) + "\n")
+            f"{output_root} appeared while converting (another conversion writing it?); it was left as it is."
+        ) from None
     return output_root
 
 
@@ -308,7 +349,8 @@ def _write_dataset(info: RobomimicFile, demos: Sequence[str], root: Path, repo_i
     try:
         with h5py.File(info.path, "r") as f:
             for name in tqdm(demos, desc=f"Converting {info.task.name} demos", unit="demo", disable=not progress):
-                frames = demo_frames(f["data"][name], info)
+                with _reading(info.path):
+                    frames = demo_frames(f["data"][name], info)
                 for t in range(len(frames["action"])):
                     frame = {key: values[t] for key, values in frames.items()}
                     dataset.add_frame(frame | {"task": info.task.description})
@@ -327,7 +369,19 @@ def load_metadata(dataset_root: str | Path) -> dict[str, Any]:
         raise RobomimicConversionError(
             f"{path} not found: {dataset_root} is not a dataset written by pacdp-convert-robomimic."
         )
-    return json.loads(path.read_text())
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise RobomimicConversionError(
+            f"{path} is damaged ({exc}); convert the dataset again with pacdp-convert-robomimic."
+        ) from None
+    if not isinstance(meta, dict) or meta.get("format") != METADATA_FORMAT:
+        found = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+        raise RobomimicConversionError(
+            f"{path} has format {found!r}, not {METADATA_FORMAT!r}: it was written by another version of this "
+            "package or by hand; convert the dataset again with this pacdp-convert-robomimic."
+        )
+    return meta
 
 
 def select_episodes(dataset_root: str | Path, split: str | None = None, first: int | None = None) -> list[int]:
@@ -374,31 +428,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--split", help="with --episodes-of: a mask of the file, e.g. train or valid")
     parser.add_argument("--first", type=int, help="with --episodes-of: the first K demos (of the split)")
     args = parser.parse_args(argv)
+    return report_user_errors(parser.prog, lambda: _run(args))
 
-    def fail(message: str) -> int:
-        print(f"pacdp-convert-robomimic: error: {message}", file=sys.stderr)
-        return 2
 
+def _run(args: argparse.Namespace) -> int:
     if args.episodes_of is not None:
         if args.hdf5 is not None or args.output_root is not None:
-            return fail("--episodes-of does not convert: drop --hdf5/--output-root.")
-        try:
-            print(episodes_argument(select_episodes(args.episodes_of, args.split, args.first)))
-        except RobomimicConversionError as exc:
-            return fail(str(exc))
+            raise UserInputError("--episodes-of does not convert: drop --hdf5/--output-root.")
+        print(episodes_argument(select_episodes(args.episodes_of, args.split, args.first)))
         return 0
     if args.hdf5 is None or args.output_root is None:
-        return fail("pass --hdf5 FILE --output-root DIR to convert, or --episodes-of DATASET_ROOT.")
+        raise UserInputError("pass --hdf5 FILE --output-root DIR to convert, or --episodes-of DATASET_ROOT.")
     if args.split is not None or args.first is not None:
-        return fail("--split/--first select episodes of a converted dataset: use them with --episodes-of.")
+        raise UserInputError("--split/--first select episodes of a converted dataset: use them with --episodes-of.")
     quiet_dataset_writing()
-    try:
-        root = convert_robomimic_hdf5(
-            args.hdf5, args.output_root, args.repo_id, args.task, args.max_demos, args.overwrite, progress=True
-        )
-        meta = load_metadata(root)
-    except RobomimicConversionError as exc:
-        return fail(str(exc))
+    root = convert_robomimic_hdf5(
+        args.hdf5, args.output_root, args.repo_id, args.task, args.max_demos, args.overwrite, progress=True
+    )
+    meta = load_metadata(root)
     repo_id = args.repo_id or f"local/robomimic_{meta['task']}"
     splits = ", ".join(f"{k}: {len(v)}" for k, v in meta["splits"].items()) or "none"
     print(
