@@ -9,7 +9,9 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.policies.factory import make_pre_post_processors
 
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
 from lerobot_pacdp.robomimic.checkpoint_fit import check_checkpoint_fits_env
@@ -88,6 +90,10 @@ def save_checkpoint(path: Path, state: int, env: int, action: int, dataset_meta:
     }
     config.output_features = {"action": PolicyFeature(FeatureType.ACTION, (action,))}
     PacdpPolicy(config).save_pretrained(path)
+    sizes = {"observation.state": state, "observation.environment_state": env, "action": action}
+    stats = {key: {"min": torch.zeros(n), "max": torch.ones(n)} for key, n in sizes.items()}
+    for processor in make_pre_post_processors(config, dataset_stats=stats):
+        processor.save_pretrained(path)
     if dataset_meta is not None:
         dataset = path.parent / "dataset"
         (dataset / "meta").mkdir(parents=True)
@@ -157,3 +163,13 @@ def test_a_checkpoint_trained_on_robosuite_14_data_needs_the_14_conventions_unle
         check_checkpoint_fits_env(checkpoint, shapes, "square", "1.5", compat_given=False)
     check_checkpoint_fits_env(checkpoint, shapes, "square", "1.4", compat_given=False)
     check_checkpoint_fits_env(checkpoint, shapes, "square", "1.5", compat_given=True)
+
+
+def test_lerobot_eval_refuses_a_checkpoint_without_its_processor_files(tmp_path, lift_checkpoint, monkeypatch, capsys):
+    (lift_checkpoint / "policy_preprocessor.json").unlink()
+    out = tmp_path / "eval"
+    argv = [f"--policy.path={lift_checkpoint}", "--env.type=robomimic", "--env.task=lift", f"--output_dir={out}"]
+    status, err = run_lerobot("eval", argv, monkeypatch, capsys)
+    line = the_error_line(err)
+    assert status == 1 and "lacks policy_preprocessor.json, the processors (with the normalisation stats)" in line
+    assert not out.exists()

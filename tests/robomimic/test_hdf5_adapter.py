@@ -289,3 +289,24 @@ def test_cli_refuses_a_broken_or_foreign_dataset_metadata_file(tmp_path, capsys,
     (root / "meta" / "robomimic.json").write_text(content)
     err = _cli_error(["--episodes-of", root, "--split", "train"], capsys)
     assert message in err and "convert the dataset again" in err
+
+
+def test_cli_refuses_a_truncated_download(tmp_path, capsys):
+    path, _ = write_legacy_file(tmp_path / "lift.hdf5", TASKS["lift"], num_demos=3)
+    path.write_bytes(path.read_bytes()[:20000])
+    err = _cli_error(["--hdf5", path, "--output-root", tmp_path / "out"], capsys)
+    assert "is not an HDF5 file, or a truncated one (" in err and "truncated file: eof = 20000" in err
+    assert _leftovers(tmp_path, "out") == []
+
+
+def test_cli_reports_a_full_disk_in_one_line_and_keeps_the_previous_dataset(tmp_path, capsys, monkeypatch):
+    path, _ = write_legacy_file(tmp_path / "lift.hdf5", TASKS["lift"], num_demos=3)
+    root = convert_robomimic_hdf5(path, tmp_path / "out", max_demos=1)
+
+    def disk_full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self.root))
+
+    monkeypatch.setattr(LeRobotDataset, "save_episode", disk_full)
+    err = _cli_error(["--hdf5", path, "--output-root", root, "--overwrite"], capsys)
+    assert "no space left on the device" in err and "free some space and run the command again" in err
+    assert load_metadata(root)["demos"] == ["demo_0"] and _leftovers(tmp_path, "out") == ["out"]

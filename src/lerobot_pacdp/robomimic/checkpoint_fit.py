@@ -14,6 +14,7 @@ from typing import Any
 from lerobot_pacdp.cli_errors import UserInputError
 from lerobot_pacdp.robomimic import compat
 from lerobot_pacdp.robomimic.tasks import TASKS, RobomimicTask
+from lerobot_pacdp.run_recovery import PROCESSOR_FILES
 
 CONVERTER_METADATA = ("meta", "robomimic.json")  # hdf5_adapter.METADATA_FILE, in the dataset's meta/
 
@@ -64,7 +65,9 @@ def check_checkpoint_fits_env(
 
     `env_shapes` are the env's features under the policy's keys. A robosuite generation different from
     the one the training data was recorded with is refused too (same shapes, permuted values), unless
-    `--env.robosuite_compat` was given explicitly. A checkpoint whose files cannot be read is left to LeRobot.
+    `--env.robosuite_compat` was given explicitly, and so is a checkpoint without its processor files (a
+    hub-style copy of `model.safetensors` and `config.json` only). A checkpoint whose config cannot be
+    read is left to LeRobot.
     """
     shapes = checkpoint_shapes(pretrained_dir)
     if shapes is None:
@@ -90,6 +93,14 @@ def check_checkpoint_fits_env(
         raise UserInputError(
             f"the checkpoint {pretrained_dir} does not fit --env.task={task}: {'; '.join(mismatches)}. It was "
             f"trained on {trained_on}; {fix}."
+        )
+
+    missing = [name for name in PROCESSOR_FILES if not (pretrained_dir / name).is_file()]
+    if missing:
+        raise UserInputError(
+            f"the checkpoint {pretrained_dir} lacks {' and '.join(missing)}, the processors (with the "
+            "normalisation stats) lerobot-eval needs: copy them from the lerobot-train checkpoint it came from "
+            "(checkpoints/<step>/pretrained_model/)."
         )
 
     recorded = meta.get("robosuite_compat")
