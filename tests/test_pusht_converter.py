@@ -429,3 +429,13 @@ def test_an_output_that_appears_during_the_conversion_is_kept(tiny_zarr, tmp_pat
         convert_pusht_zarr(tiny_zarr, out)
     assert (out / "other.txt").read_text() == "the other job's dataset"
     assert no_leftovers(tmp_path) == ["out", "tiny.zarr"]
+
+
+def test_cli_refuses_the_zip_file_itself_and_says_to_unzip_it(tmp_path, capsys):
+    import zipfile
+
+    with zipfile.ZipFile(tmp_path / "pusht.zip", "w") as archive:
+        archive.writestr("pusht/pusht_cchi_v7_replay.zarr/.zgroup", '{"zarr_format": 2}')
+    status, err = run_cli(["--zarr", tmp_path / "pusht.zip", "--output-root", tmp_path / "out"], capsys)
+    assert status == 2 and "pusht.zip is a file" in err and "unzip pusht.zip" in err
+    assert no_leftovers(tmp_path) == ["pusht.zip"]

@@ -6,9 +6,11 @@ train_config.json first, then the processors, then training_state/, and moves `l
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -50,11 +52,13 @@ def run(finished_run, tmp_path) -> Path:
     return Path(shutil.copytree(finished_run, tmp_path / "run", symlinks=True))
 
 
-def kill_during_write(step_dir: Path) -> None:
-    """Leave `step_dir` as a kill after model.safetensors and train_config.json leaves it."""
+def kill_during_write(step_dir: Path, seconds_ago: float = 3600) -> None:
+    """Leave `step_dir` as a kill after model.safetensors and train_config.json leaves it, `seconds_ago`."""
     for path in step_dir.joinpath("pretrained_model").glob("policy_*"):
         path.unlink()
     shutil.rmtree(step_dir / "training_state")
+    for path in (step_dir, *step_dir.rglob("*")):
+        os.utime(path, (time.time() - seconds_ago,) * 2)
 
 
 def recover(run: Path, capsys) -> tuple[int, str, str]:
@@ -92,6 +96,14 @@ def test_a_run_killed_during_its_first_checkpoint_has_nothing_to_resume_and_lose
         f"pacdp-recover-run: error: no complete checkpoint in {run}/checkpoints (000002: training_state/ is missing), "
         f"so there is nothing to resume: remove {run} (or pass another --output_dir) and start the run again."
     )
+    assert sorted(p.relative_to(run) for p in run.rglob("*")) == before
+
+
+def test_a_checkpoint_being_written_right_now_is_left_alone(run, capsys):
+    kill_during_write(run / "checkpoints" / "000004", seconds_ago=5)
+    before = sorted(p.relative_to(run) for p in run.rglob("*"))
+    status, _, err = recover(run, capsys)
+    assert status == 2 and re.search(r"000004 was written \d+ s ago: the run may still be saving it. Stop lerobot", err)
     assert sorted(p.relative_to(run) for p in run.rglob("*")) == before
 
 

@@ -13,6 +13,7 @@ JSON parsable, safetensors not truncated), points `last` at it, and moves the in
 import json
 import os
 import sys
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,8 @@ PRETRAINED_DIR = "pretrained_model"
 TRAINING_STATE_DIR = "training_state"
 INCOMPLETE_DIR = "incomplete_checkpoints"
 PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
+# An incomplete checkpoint touched more recently than this may belong to a run that is still saving it.
+RECENT_WRITE_S = 60
 
 
 def _json_problem(path: Path) -> str | None:
@@ -122,6 +125,13 @@ def recover_run(output_dir: str | Path) -> Recovery:
             f"no complete checkpoint in {checkpoints} ({details}), so there is nothing to resume: remove "
             f"{output_dir} (or pass another --output_dir) and start the run again."
         )
+    for step_dir, problem in found:
+        age = time.time() - max((p.stat().st_mtime for p in step_dir.rglob("*")), default=step_dir.stat().st_mtime)
+        if problem is not None and age < RECENT_WRITE_S:
+            raise UserInputError(
+                f"{step_dir} was written {age:.0f} s ago: the run may still be saving it. Stop lerobot-train (or "
+                f"wait {RECENT_WRITE_S} s after it died) and run pacdp-recover-run again."
+            )
     newest = complete[-1]
     last = checkpoints / LAST_LINK
     if last.exists() and not last.is_symlink():

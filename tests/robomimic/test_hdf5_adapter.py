@@ -310,3 +310,11 @@ def test_cli_reports_a_full_disk_in_one_line_and_keeps_the_previous_dataset(tmp_
     err = _cli_error(["--hdf5", path, "--output-root", root, "--overwrite"], capsys)
     assert "no space left on the device" in err and "free some space and run the command again" in err
     assert load_metadata(root)["demos"] == ["demo_0"] and _leftovers(tmp_path, "out") == ["out"]
+
+
+def test_cli_refuses_a_split_that_lists_demos_the_file_does_not_hold(tmp_path, capsys):
+    names = ["demo_0", "demo_1", "demo_7"]
+    path, _ = write_legacy_file(tmp_path / "lift.hdf5", TASKS["lift"], num_demos=2, masks={"train": names})
+    err = _cli_error(["--hdf5", path, "--output-root", tmp_path / "out"], capsys)
+    assert "mask/train lists demo_7, which data/ does not hold" in err and "split_train_val_from_hdf5" in err
+    assert _leftovers(tmp_path, "out") == []

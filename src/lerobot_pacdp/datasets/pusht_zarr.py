@@ -73,6 +73,11 @@ def load_replay_buffer(zarr_path: str | Path) -> ReplayBuffer:
     path = Path(zarr_path).expanduser()
     if not path.exists():
         raise PushTConversionError(f"{path} does not exist; {_HINT}.")
+    if path.is_file():
+        raise PushTConversionError(
+            f"{path} is a file; a replay buffer is a directory: unzip pusht.zip and pass the "
+            "pusht/pusht_cchi_v7_replay.zarr directory inside it."
+        )
     try:
         group = zarr.open_group(str(path), mode="r")
     except Exception as exc:

@@ -165,6 +165,13 @@ def _inspect_open_file(path: Path, f, task: str | None) -> RobomimicFile:
         for name in mask_group.keys():
             values = np.asarray(mask_group[name][()]).reshape(-1)
             masks[name] = tuple(_decode(v) for v in values)
+            unknown = sorted(set(masks[name]) - set(demos), key=_demo_sort_key)
+            if unknown:
+                raise RobomimicConversionError(
+                    f"{path}: mask/{name} lists {', '.join(unknown[:3])}{' ...' if len(unknown) > 3 else ''}, which "
+                    "data/ does not hold; the file is inconsistent (robomimic's split_train_val_from_hdf5.py "
+                    "rewrites the masks)."
+                )
     generation, version = compat.file_generation(env_args, _attr(data, "repository_version"))
     reward_shaping = bool((env_args.get("env_kwargs") or {}).get("reward_shaping", False))
     return RobomimicFile(path, file_task, env_args, generation, version, demos, lengths, masks, reward_shaping)
