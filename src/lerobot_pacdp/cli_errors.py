@@ -29,7 +29,7 @@ def _os_error_line(exc: OSError) -> str | None:
     if exc.errno in (errno.ENOSPC, errno.EDQUOT):
         return f"no space left on the device{where}; free some space and run the command again."
     if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
-        return f"{exc.strerror}{where}; choose a location you can write to."
+        return f"{exc.strerror}{where}; check that path's permissions, or write somewhere else."
     return None
 
 
