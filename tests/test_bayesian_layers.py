@@ -4,6 +4,7 @@ import pytest
 import torch
 from torch import nn
 from torch.distributions import Normal, kl_divergence as torch_kl
+from torch.utils.checkpoint import checkpoint
 
 from lerobot_pacdp.bayesian_layers import (
     BayesianConv1d,
@@ -142,3 +143,117 @@ def test_closed_form_kl_gradient_passes_gradcheck():
     sigma = (torch.rand(6, 3, dtype=torch.float64) + 0.1).requires_grad_()
     prior_mu, prior_sigma = torch.randn(6, 3, dtype=torch.float64), torch.tensor(0.3, dtype=torch.float64)
     assert torch.autograd.gradcheck(lambda m, s: _GaussianKL.apply(m, s, prior_mu, prior_sigma), (mu, sigma))
+
+
+
+def _two_layer_block() -> nn.Sequential:
+    """Two Bayesian convs: the second one's gradient depends on the first one's weights."""
+    torch.manual_seed(6)
+    block = nn.Sequential(nn.Conv1d(3, 4, 3, padding=1), nn.Mish(), nn.Conv1d(4, 2, 3, padding=1))
+    bayesianize(block, PRIOR_RHO)
+    with torch.no_grad():
+        for name, param in block.named_parameters():
+            if name.endswith("_rho"):
+                param.fill_(-1.0)
+    return block
+
+
+def _gradients(block: nn.Sequential, loss: torch.Tensor) -> list[torch.Tensor]:
+    block.zero_grad()
+    loss.backward()
+    return [torch.zeros_like(p) if p.grad is None else p.grad.clone() for p in block.parameters()]
+
+
+@pytest.mark.parametrize("use_checkpoint", [False, True])
+def test_a_checkpointed_pass_recomputed_after_the_block_uses_the_same_weight_sample(use_checkpoint):
+    block, x = _two_layer_block(), torch.randn(2, 3, 8)
+    run = (lambda inp: checkpoint(block, inp, use_reentrant=False)) if use_checkpoint else block
+    torch.manual_seed(7)
+    with sampled_weights(block):
+        loss = run(x).square().sum()
+    gradients = _gradients(block, loss)  # after the block: a checkpointed pass is recomputed here
+    torch.manual_seed(7)
+    with sampled_weights(block):
+        reference = _gradients(block, block(x).square().sum())  # the same sample, backward inside the block
+    on_mu = _gradients(block, block(x).square().sum())
+    assert all(torch.equal(a, b) for a, b in zip(gradients, reference, strict=True))
+    assert not torch.allclose(reference[2], on_mu[2])  # the second conv's gradient does depend on the sample
+
+
+def test_a_checkpointed_pass_on_mu_after_a_sampled_one_is_recomputed_with_mu():
+    block, x = _two_layer_block(), torch.randn(2, 3, 8)
+    with sampled_weights(block):
+        _gradients(block, block(x).square().sum())
+    checkpointed = _gradients(block, checkpoint(block, x, use_reentrant=False).square().sum())
+    assert all(torch.equal(a, b) for a, b in zip(checkpointed, _gradients(block, block(x).square().sum()), strict=True))
+
+
+def test_sample_and_kl_share_one_backward_that_passes_gradcheck():
+    from lerobot_pacdp.bayesian_layers import _SampleWithKL
+
+    torch.manual_seed(8)
+    mu = torch.randn(5, 3, dtype=torch.float64, requires_grad=True)
+    rho = (torch.randn(5, 3, dtype=torch.float64) - 2).requires_grad_()
+    xi, prior_mu = torch.randn(5, 3, dtype=torch.float64), torch.randn(5, 3, dtype=torch.float64)
+    prior_sigma = torch.tensor(0.3, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda m, r: _SampleWithKL.apply(m, r, xi, prior_mu, prior_sigma)[:2], (mu, rho))
+    sample, kl, sigma = _SampleWithKL.apply(mu, rho, xi, prior_mu, prior_sigma)
+    assert torch.equal(sigma, nn.functional.softplus(rho)) and not sigma.requires_grad
+    assert torch.allclose(sample, mu + sigma * xi)
+
+
+def test_the_kl_drawn_with_a_training_sample_is_the_posteriors_kl_with_the_same_gradients():
+    torch.manual_seed(9)
+    layer = make_bayesian(nn.Conv1d(3, 4, 3, padding=1), PRIOR_RHO)
+    _perturb(layer)
+    outside = kl_divergence(layer)
+    outside.backward()
+    expected = [layer.weight.grad.clone(), layer.weight_rho.grad.clone(), layer.bias_rho.grad.clone()]
+    layer.zero_grad()
+    with sampled_weights(layer):
+        inside = kl_divergence(layer)
+        with torch.no_grad():
+            assert not kl_divergence(layer).requires_grad
+    assert inside.dtype == torch.float64 and inside.item() == pytest.approx(outside.item(), rel=1e-6)
+    inside.backward()
+    got = [layer.weight.grad, layer.weight_rho.grad, layer.bias_rho.grad]
+    assert all(torch.allclose(a, b, rtol=1e-5, atol=1e-8) for a, b in zip(got, expected, strict=True))
+
+
+def test_sampling_without_gradients_reuses_sigma_until_rho_changes():
+    layer = make_bayesian(nn.Linear(6, 5), PRIOR_RHO)
+    with torch.no_grad():
+        with sampled_weights(layer):
+            first = layer.posterior_sigma("weight")
+        with sampled_weights(layer):
+            assert layer.posterior_sigma("weight") is first  # the same rho: no new softplus
+        layer.weight_rho.add_(1.0)  # an optimizer or EMA step changes rho in place
+        with sampled_weights(layer):
+            assert torch.equal(layer.posterior_sigma("weight"), nn.functional.softplus(layer.weight_rho))
+        layer.weight_rho = nn.Parameter(torch.full((5, 6), -1.0))  # a replaced rho, e.g. moved to a device
+        with sampled_weights(layer):
+            assert torch.equal(layer.posterior_sigma("weight"), nn.functional.softplus(torch.full((5, 6), -1.0)))
+
+
+def test_a_network_copies_after_a_training_pass_without_its_pending_sample():
+    import copy
+
+    layer = make_bayesian(nn.Linear(3, 2), PRIOR_RHO)
+    with sampled_weights(layer):
+        loss = layer(torch.randn(4, 3)).sum()
+    copied = copy.deepcopy(layer)  # the original still holds the sample its backward may recompute with
+    loss.backward()
+    assert copied._graph_sample.sample is None and copied.current("weight") is copied.weight
+
+
+def test_bayesian_layers_compile_without_graph_breaks_and_keep_their_gradients():
+    block, x = _two_layer_block(), torch.randn(2, 3, 8)
+    compiled = torch.compile(block, backend="aot_eager", fullgraph=True)  # fullgraph: a graph break is an error
+    torch.manual_seed(10)
+    with sampled_weights(block):
+        sampled = _gradients(block, compiled(x).square().sum())
+    torch.manual_seed(10)
+    with sampled_weights(block):
+        reference = _gradients(block, block(x).square().sum())
+    assert all(torch.allclose(a, b, rtol=1e-5, atol=1e-7) for a, b in zip(sampled, reference, strict=True))
+    assert torch.allclose(compiled(x), block(x))  # and outside a block, on mu

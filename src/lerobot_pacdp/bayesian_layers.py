@@ -19,7 +19,9 @@ at step 0. Biases are Bayesian exactly like weights (own mu, rho, prior) and ent
 Sampling is explicit: outside `sampled_weights(...)` every layer uses mu (zero sampling cost); inside
 it, each layer uses one weight sample drawn on entry (Eq. 6), shared by every call in the block. That
 gives one sample per training forward pass and one per generated action chunk, never one per
-denoising step.
+denoising step. A pass that the autograd engine re-runs during backward (gradient checkpointing's
+recomputation, after the block has exited) uses the weights the original pass used: the sample of the
+most recent forward pass run with gradients, or mu if that pass ran on mu.
 """
 
 import contextlib
@@ -39,31 +41,101 @@ def softplus_inverse(sigma: float) -> float:
     return math.log(math.expm1(sigma))
 
 
-class _GaussianKL(torch.autograd.Function):
-    """sum KL(N(mu, sigma^2) || N(mu_p, sp^2)) over elements, with its closed-form gradient.
+def _in_backward_pass() -> bool:
+    """True while the autograd engine runs a backward pass (where checkpointed segments are recomputed)."""
+    return torch._C._current_graph_task_id() != -1
 
-    Autograd would record ~8 elementwise nodes over every parameter; the analytic backward is two
-    passes: dKL/dmu = (mu - mu_p) / sp^2 and dKL/dsigma = sigma / sp^2 - 1 / sigma.
-    Elementwise: (log sp - log sigma) + ((sigma^2 + (mu - mu_p)^2) / (2 sp^2) - 1/2), exactly 0 at Q = P.
+
+def _kl_terms_sum(mu: Tensor, sigma: Tensor, prior_mu: Tensor, prior_sigma: Tensor) -> Tensor:
+    """sum KL(N(mu, sigma^2) || N(mu_p, sp^2)) over elements, in the inputs' dtype.
+
+    With r = sigma / sp, each element is -log r + (r^2 - 1) / 2 + (mu - mu_p)^2 / (2 sp^2): every part is
+    exactly 0 where Q = P and each element is >= 0, so the sum has no cancellation (8 passes, one log).
+    """
+    ratio = sigma / prior_sigma
+    terms = torch.addcmul(ratio.new_full((), -0.5), ratio, ratio, value=0.5)
+    terms.sub_(ratio.log_())
+    scaled_gap = torch.sub(mu, prior_mu).div_(prior_sigma * math.sqrt(2.0))
+    terms.addcmul_(scaled_gap, scaled_gap)
+    return terms.sum()
+
+
+def _kl_gradients(
+    grad_kl: Tensor, mu: Tensor, sigma: Tensor, prior_mu: Tensor, prior_sigma: Tensor, grad_sigma: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """grad_kl * dKL/dmu = grad_kl (mu - mu_p) / sp^2 and grad_kl * dKL/dsigma = grad_kl (sigma / sp^2 - 1 / sigma),
+    the latter added into `grad_sigma` in place when given."""
+    scale = grad_kl.to(sigma.dtype)
+    scaled_inv_var = scale / prior_sigma.square()
+    grad_mu = torch.sub(mu, prior_mu).mul_(scaled_inv_var)
+    if grad_sigma is None:
+        grad_sigma = torch.mul(sigma, scaled_inv_var)
+    else:
+        grad_sigma.addcmul_(sigma, scaled_inv_var)
+    return grad_mu, grad_sigma.addcdiv_(scale.expand_as(sigma), sigma, value=-1.0)
+
+
+class _GaussianKL(torch.autograd.Function):
+    """The KL of `_kl_terms_sum` with its closed-form gradient, for a posterior given by (mu, sigma).
+
+    The analytic backward replaces the ~10 autograd nodes per tensor the expression would record and saves
+    no tensor of its own.
     """
 
     @staticmethod
     def forward(ctx, mu: Tensor, sigma: Tensor, prior_mu: Tensor, prior_sigma: Tensor) -> Tensor:
-        gap = mu - prior_mu
-        prior_var = prior_sigma.square()
-        elementwise = (torch.log(prior_sigma) - torch.log(sigma)) + (
-            (sigma.square() + gap.square()) / (2 * prior_var) - 0.5
-        )
-        ctx.save_for_backward(gap, sigma, prior_var)
-        return elementwise.sum(dtype=torch.float64)
+        ctx.save_for_backward(mu, sigma, prior_mu, prior_sigma)
+        return _kl_terms_sum(mu, sigma, prior_mu, prior_sigma)
 
     @staticmethod
     def backward(ctx, grad_output: Tensor):
-        gap, sigma, prior_var = ctx.saved_tensors
-        scale = grad_output.to(sigma.dtype)
-        grad_mu = gap * (scale / prior_var) if ctx.needs_input_grad[0] else None
-        grad_sigma = (sigma / prior_var - sigma.reciprocal()) * scale if ctx.needs_input_grad[1] else None
+        mu, sigma, prior_mu, prior_sigma = ctx.saved_tensors
+        grad_mu, grad_sigma = _kl_gradients(grad_output, mu, sigma, prior_mu, prior_sigma)
         return grad_mu, grad_sigma, None, None
+
+
+class _SampleWithKL(torch.autograd.Function):
+    """One training draw of a tensor: w = mu + softplus(rho) * xi (Eq. 6) and the KL of the posterior it came from.
+
+    Sample and KL share one backward, so their gradients reach mu and rho without the separate passes autograd
+    would make (softplus, addcmul, KL, then sums of the two contributions). Only xi is saved: sigma is
+    recomputed in backward, which keeps one tensor per weight less alive between forward and backward.
+    Outputs: w, the KL (a 0-d tensor of mu's dtype) and sigma (not differentiable; for logging and the KL).
+    """
+
+    @staticmethod
+    def forward(ctx, mu: Tensor, rho: Tensor, xi: Tensor, prior_mu: Tensor, prior_sigma: Tensor):
+        sigma = F.softplus(rho)
+        sample = torch.addcmul(mu, sigma, xi)
+        kl = _kl_terms_sum(mu, sigma, prior_mu, prior_sigma)
+        ctx.save_for_backward(mu, rho, xi, prior_mu, prior_sigma)
+        ctx.mark_non_differentiable(sigma)
+        ctx.set_materialize_grads(False)
+        return sample, kl, sigma
+
+    @staticmethod
+    def backward(ctx, grad_sample: Tensor | None, grad_kl: Tensor | None, _grad_sigma: None):
+        mu, rho, xi, prior_mu, prior_sigma = ctx.saved_tensors
+        grad_sigma = grad_sample * xi if grad_sample is not None else torch.zeros_like(xi)
+        grad_mu = grad_sample
+        if grad_kl is not None:
+            kl_grad_mu, grad_sigma = _kl_gradients(grad_kl, mu, F.softplus(rho), prior_mu, prior_sigma, grad_sigma)
+            grad_mu = kl_grad_mu if grad_mu is None else kl_grad_mu.add_(grad_mu)
+        return grad_mu, grad_sigma.mul_(torch.sigmoid(rho)), None, None, None
+
+
+class _PendingSample:
+    """The weight sample a backward recomputation must see. A copy of the network starts without one: a deep
+    copy or a pickle has no pending backward (and a sample with an autograd history cannot be copied)."""
+
+    def __init__(self, sample: dict[str, Tensor] | None = None):
+        self.sample = sample
+
+    def __deepcopy__(self, memo) -> "_PendingSample":
+        return _PendingSample()
+
+    def __reduce__(self):
+        return (_PendingSample, ())
 
 
 class BayesianLayer(nn.Module):
@@ -74,6 +146,9 @@ class BayesianLayer(nn.Module):
     prior_rho: Tensor
     _sampled: dict[str, Tensor] | None
     _sampled_sigma: dict[str, Tensor] | None
+    _sampled_kl: Tensor | None
+    _graph_sample: _PendingSample
+    _sigma_cache: dict[str, tuple[Tensor, int, Tensor]]
 
     def _init_bayesian(self, prior_rho: float, fan_in: int) -> None:
         """Turn the deterministic parameters into (mu, rho) and record the prior (Q = P at init)."""
@@ -88,6 +163,8 @@ class BayesianLayer(nn.Module):
                 mu.copy_(prior_mu)
             self.register_buffer(f"{name}_prior_mu", prior_mu)
             self.register_parameter(f"{name}_rho", nn.Parameter(torch.full_like(mu, float(prior_rho))))
+        self._graph_sample = _PendingSample()
+        self._sigma_cache = {}
         self.clear_sample()
 
     def _bayesian_param_names(self) -> tuple[str, ...]:
@@ -99,42 +176,80 @@ class BayesianLayer(nn.Module):
             return self._sampled_sigma[name]
         return F.softplus(getattr(self, f"{name}_rho"))
 
+    def _sigma_without_gradients(self, name: str) -> Tensor:
+        """softplus(rho) for a draw without gradients, reused while rho is unchanged: one softplus per new rho,
+        not per action chunk. The cache keeps rho's storage alive, so a replaced rho cannot reuse its address."""
+        rho = getattr(self, f"{name}_rho")
+        cached = self._sigma_cache.get(name)
+        if cached is not None and cached[0].data_ptr() == rho.data_ptr() and cached[1] == rho._version:
+            return cached[2]
+        sigma = F.softplus(rho.detach())
+        self._sigma_cache[name] = (rho.detach(), rho._version, sigma)
+        return sigma
+
     def draw_sample(self, generator: torch.Generator | None = None) -> None:
         """Draw w = mu + softplus(rho) * xi, xi ~ N(0, I) (Eq. 6), for every Bayesian parameter.
 
-        sigma is kept until `clear_sample` so the KL of the same step reuses it (one softplus pass).
+        sigma is kept until `clear_sample` so the KL and the logging of the same step reuse it; with gradients
+        the KL is computed with the sample (`_SampleWithKL`) and `kl_divergence` returns it.
         """
-        sample, sigmas = {}, {}
+        grad = torch.is_grad_enabled()
+        if grad:
+            self._graph_sample.sample = None  # the previous graph's sample is not kept alive beside the new one
+        prior_sigma = F.softplus(self.prior_rho)
+        sample, sigmas, kls = {}, {}, []
         for name in self._bayesian_param_names():
-            mu = getattr(self, name)
-            sigma = F.softplus(getattr(self, f"{name}_rho"))
+            mu, rho = getattr(self, name), getattr(self, f"{name}_rho")
             xi = torch.randn(mu.shape, dtype=mu.dtype, device=mu.device, generator=generator)
-            sample[name] = torch.addcmul(mu, sigma, xi)
-            sigmas[name] = sigma
+            if grad and (mu.requires_grad or rho.requires_grad):
+                prior_mu = getattr(self, f"{name}_prior_mu")
+                sample[name], kl, sigmas[name] = _SampleWithKL.apply(mu, rho, xi, prior_mu, prior_sigma)
+                kls.append(kl.double())
+            else:
+                sigmas[name] = self._sigma_without_gradients(name)
+                sample[name] = torch.addcmul(mu, sigmas[name], xi)
         self._sampled, self._sampled_sigma = sample, sigmas
+        self._sampled_kl = torch.stack(kls).sum() if len(kls) == len(sample) else None
 
     def clear_sample(self) -> None:
+        """End the sampling block: new passes use mu (a backward recomputation still sees its own weights)."""
         self._sampled = None
         self._sampled_sigma = None
+        self._sampled_kl = None
 
     def current(self, name: str) -> Tensor | None:
-        """The tensor used in the forward pass: the drawn sample if any, else the posterior mean."""
-        if self._sampled is not None and name in self._sampled:
-            return self._sampled[name]
+        """The tensor this forward pass uses: the drawn sample if any, else the posterior mean.
+
+        A pass re-run during backward (gradient checkpointing) gets what the last pass with gradients got.
+        A compiled graph takes the weights as inputs and its own backward recomputes with them.
+        """
+        if torch.compiler.is_compiling():
+            sample = self._sampled
+        elif _in_backward_pass():
+            sample = self._graph_sample.sample
+        else:
+            sample = self._sampled
+            if torch.is_grad_enabled():
+                self._graph_sample.sample = sample
+        if sample is not None and name in sample:
+            return sample[name]
         return getattr(self, name)
 
     def kl_divergence(self) -> Tensor:
         """Closed-form KL(Q||P) between factorized Gaussians, summed over all elements (Eq. 12 terms).
 
-        KL = sum 0.5 * (log(sp^2/sq^2) + (sq^2 + (mq - mp)^2) / sp^2 - 1), summed in float64
-        (see `_GaussianKL` for the exact arithmetic and the gradient).
+        KL = sum 0.5 * (log(sp^2/sq^2) + (sq^2 + (mq - mp)^2) / sp^2 - 1): each tensor's nonnegative
+        terms summed in its dtype, the tensors' sums added in float64 (see `_kl_terms_sum`). Inside a
+        sampling block drawn with gradients, the KL computed with the sample (the same value).
         """
+        if self._sampled_kl is not None:
+            return self._sampled_kl if torch.is_grad_enabled() else self._sampled_kl.detach()
         prior_sigma = F.softplus(self.prior_rho)
         total = torch.zeros((), dtype=torch.float64, device=self.prior_rho.device)
         for name in self._bayesian_param_names():
-            total = total + _GaussianKL.apply(
-                getattr(self, name), self.posterior_sigma(name), getattr(self, f"{name}_prior_mu"), prior_sigma
-            )
+            rho = getattr(self, f"{name}_rho")
+            sigma = F.softplus(rho) if torch.is_grad_enabled() and rho.requires_grad else self.posterior_sigma(name)
+            total = total + _GaussianKL.apply(getattr(self, name), sigma, getattr(self, f"{name}_prior_mu"), prior_sigma).double()
         return total
 
     def extra_repr(self) -> str:
@@ -230,9 +345,13 @@ def rho_parameters(network: nn.Module) -> list[nn.Parameter]:
 
 @torch.no_grad()
 def mean_posterior_sigma(network: nn.Module) -> float:
-    """Element-weighted mean posterior std over all Bayesian parameters (a training-health signal)."""
+    """Element-weighted mean posterior std over all Bayesian parameters (a training-health signal); one
+    host sync, not one per layer."""
     sigmas = [layer.posterior_sigma(name) for layer in bayesian_layers(network) for name in layer._bayesian_param_names()]
-    return sum(s.sum().item() for s in sigmas) / max(sum(s.numel() for s in sigmas), 1)
+    if not sigmas:
+        return 0.0
+    total = torch.stack([s.sum() for s in sigmas]).double().sum()
+    return total.item() / sum(s.numel() for s in sigmas)
 
 
 @contextlib.contextmanager
