@@ -1,17 +1,27 @@
-"""DP vs PAC-DP cost on the same U-Net, batch and data: training step, action latency, peak memory.
+"""PAC-DP's cost against DP on the same U-Net, batch and data: training step, action-chunk latency, peak memory.
 
-Timings alternate between the two policies in one process (so background load hits both alike) and
-report medians; peak memory is measured per policy in a fresh subprocess (CPU: peak RSS growth;
-CUDA: torch.cuda.max_memory_allocated). Prints a table and writes JSON to benchmarks/results/.
+Three policies train on one fixed batch through LeRobot's own `update_policy` (forward, backward, gradient
+clipping, the optimizer its preset builds, the policy's `update()`), as `lerobot-train` runs them:
 
-    python benchmarks/speed.py --preset cpu          # 2 CPU cores, small U-Net
-    python benchmarks/speed.py --preset paper        # paper U-Net (256/512/1024), batch 256, GPU
-    python benchmarks/speed.py --preset paper --batch-size 8 --train-steps 10 --latency-calls 5  # on 2 CPU cores
+- `dp`: LeRobot's `diffusion` policy with PAC-DP's diffusion settings (`PacdpConfig.diffusion_twin`);
+- `twin`: PAC-DP with `bayesian=false` (the same policy code and EMA, deterministic layers);
+- `pacdp`: PAC-DP (Bayesian U-Net, Eq. 9).
+
+pacdp/twin is the Bayesian overhead alone; pacdp/dp is what moving from LeRobot's `diffusion` costs (the EMA
+included). Timings alternate between the policies in one process, so background load hits all alike, and
+report medians; peak memory is measured per policy in a fresh subprocess (CPU: peak resident-memory growth
+over the run, sampled every millisecond; CUDA: torch.cuda.max_memory_allocated). Prints a table and writes
+JSON to benchmarks/results/.
+
+    python benchmarks/speed.py --preset cpu --threads 2                    # 2 CPU cores, CPU-preset U-Net
+    python benchmarks/speed.py --preset paper --batch-size 64 --threads 2  # paper U-Net on 2 CPU cores
+    python benchmarks/speed.py --preset paper --device cuda --batch-size 256  # the GPU row (a few minutes)
 """
 
 import argparse
 import dataclasses
 import json
+import os
 import platform
 import statistics
 import subprocess
@@ -23,7 +33,6 @@ from pathlib import Path
 import psutil
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
-from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 
 from lerobot_pacdp.atomic_io import write_text_atomic
@@ -32,6 +41,9 @@ from lerobot_pacdp.modeling_pacdp import PacdpPolicy
 
 RESULTS_DIR = Path(__file__).parent / "results"
 STATE_DIM, ENV_DIM, ACTION_DIM = 2, 16, 2  # PushT, state-based
+WARMUP = 3
+TRAINED = ("dp", "twin", "pacdp")
+ACTING = ("dp", "pacdp", "pacdp-sample")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,6 +60,13 @@ PRESETS = {
     "paper": Preset(down_dims=(256, 512, 1024), step_embed_dim=256, batch_size=256, train_steps=50, latency_calls=50),
 }
 
+# Issue 12's targets for PAC-DP/DP, by (preset, device kind).
+TARGETS = {
+    ("cpu", "cpu"): {"train_step": 1.15, "peak_memory": 2.0, "sample_mode_latency": 1.10, "mean_mode_latency": 1.00},
+    ("paper", "cpu"): {"train_step": 1.5},
+    ("paper", "cuda"): {"train_step": 1.10},
+}
+
 
 def _features():
     inputs = {
@@ -58,22 +77,20 @@ def _features():
 
 
 def build(method: str, preset: Preset, device: str) -> torch.nn.Module:
-    """DP gets PAC-DP's exact diffusion settings; only the Bayesian layers and the loss differ."""
-    pacdp = PacdpConfig(
+    """The same diffusion settings for every method; only what the method name says differs."""
+    config = PacdpConfig(
         down_dims=preset.down_dims,
         diffusion_step_embed_dim=preset.step_embed_dim,
         num_train_samples=25_650,
         device=device,
+        bayesian=method != "twin",
         inference_mode="sample" if method == "pacdp-sample" else "mean",
     )
-    if method.startswith("pacdp"):
-        config, policy_cls = pacdp, PacdpPolicy
-    else:
-        shared = {k: getattr(pacdp, k) for k in DiffusionConfig.__dataclass_fields__ if k in pacdp.__dataclass_fields__}
-        config, policy_cls = DiffusionConfig(**shared), DiffusionPolicy
+    if method == "dp":
+        config = config.diffusion_twin()
     config.input_features, config.output_features = _features()
     torch.manual_seed(0)
-    return policy_cls(config).to(device)
+    return (DiffusionPolicy if method == "dp" else PacdpPolicy)(config).to(device)
 
 
 def make_batch(preset: Preset, config, device: str) -> dict[str, torch.Tensor]:
@@ -94,18 +111,27 @@ def _sync(device: str) -> None:
 
 
 class Trainer:
+    """One lerobot-train update per `step()`: LeRobot's `update_policy` with the policy's optimizer preset."""
+
     def __init__(self, policy, batch, device):
-        self.policy, self.batch, self.device = policy, batch, device
-        self.optimizer = torch.optim.Adam(policy.get_optim_params(), lr=1e-4)
-        policy.train()
+        from accelerate import Accelerator
+        from lerobot.scripts.lerobot_train import update_policy
+        from lerobot.utils.logging_utils import AverageMeter, MetricsTracker
+
+        self.policy, self.batch, self.device, self._update_policy = policy, batch, device, update_policy
+        optimizer_config = policy.config.get_optimizer_preset()
+        self.optimizer = optimizer_config.build(policy.get_optim_params())
+        self.grad_clip_norm = optimizer_config.grad_clip_norm
+        self.accelerator = Accelerator(cpu=not device.startswith("cuda"))
+        meters = {
+            name: AverageMeter(name, ":.3f") for name in ("loss", "grad_norm", "lr", "update_s", "dataloading_s")
+        }
+        self.metrics = MetricsTracker(len(batch["action"]), 10**6, 10**3, meters)
 
     def step(self) -> float:
         _sync(self.device)
         start = time.perf_counter()
-        loss, _ = self.policy.forward(self.batch)
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
+        self._update_policy(self.metrics, self.policy, self.batch, self.optimizer, self.grad_clip_norm, self.accelerator)
         _sync(self.device)
         return time.perf_counter() - start
 
@@ -122,26 +148,29 @@ def chunk_latency(policy, batch, device) -> float:
 
 def measure_times(preset: Preset, device: str) -> dict[str, float]:
     """Median seconds per training step and per action chunk, interleaving the methods."""
-    methods = ("dp", "pacdp", "pacdp-sample")
-    policies = {m: build(m, preset, device) for m in methods}
-    batch = make_batch(preset, policies["dp"].config, device)
-    trainers = {m: Trainer(policies[m], batch, device) for m in ("dp", "pacdp")}
-    step_times: dict[str, list[float]] = {m: [] for m in trainers}
-    for i in range(preset.train_steps + 3):
-        for m, trainer in trainers.items():
-            t = trainer.step()
-            if i >= 3:  # warm-up
-                step_times[m].append(t)
-    latencies: dict[str, list[float]] = {m: [] for m in methods}
+    trainers = {}
+    for method in TRAINED:
+        policy = build(method, preset, device)
+        trainers[method] = Trainer(policy, make_batch(preset, policy.config, device), device)
+    step_times: dict[str, list[float]] = {m: [] for m in TRAINED}
+    for i in range(preset.train_steps + WARMUP):
+        for method, trainer in trainers.items():
+            seconds = trainer.step()
+            if i >= WARMUP:
+                step_times[method].append(seconds)
+    acting = {"dp": trainers["dp"].policy, "pacdp": trainers["pacdp"].policy}
+    acting["pacdp-sample"] = build("pacdp-sample", preset, device)
+    acting["pacdp-sample"].load_state_dict(acting["pacdp"].state_dict())
+    batch = trainers["dp"].batch
+    latencies: dict[str, list[float]] = {m: [] for m in ACTING}
     with torch.no_grad():
-        for i in range(preset.latency_calls + 3):
-            for m in methods:
-                t = chunk_latency(policies[m], batch, device)
-                if i >= 3:
-                    latencies[m].append(t)
+        for i in range(preset.latency_calls + WARMUP):
+            for method, policy in acting.items():
+                seconds = chunk_latency(policy, batch, device)
+                if i >= WARMUP:
+                    latencies[method].append(seconds)
     return {
-        "dp_step_s": statistics.median(step_times["dp"]),
-        "pacdp_step_s": statistics.median(step_times["pacdp"]),
+        **{f"{m}_step_s": statistics.median(step_times[m]) for m in TRAINED},
         "dp_chunk_s": statistics.median(latencies["dp"]),
         "pacdp_mean_chunk_s": statistics.median(latencies["pacdp"]),
         "pacdp_sample_chunk_s": statistics.median(latencies["pacdp-sample"]),
@@ -161,13 +190,12 @@ class _RssPeak(threading.Thread):
             time.sleep(1e-3)
 
 
-def peak_memory_child(method: str, preset_name: str, device: str) -> None:
-    """Run in a subprocess: a few training steps, then print the peak memory they needed (bytes).
+def peak_memory_child(method: str, preset: Preset, device: str) -> None:
+    """Run in a subprocess: build the policy and train a few steps, then print the peak memory (bytes).
 
-    CPU: peak resident memory during model construction and training minus the resident memory
-    before it (weights, gradients, optimizer state, activations). CUDA: peak allocated memory.
+    CPU: peak resident memory during construction and training minus the resident memory before it
+    (weights, gradients, optimizer state, EMA copy, activations). CUDA: peak allocated memory.
     """
-    preset = PRESETS[preset_name]
     baseline = psutil.Process().memory_info().rss
     sampler = _RssPeak()
     sampler.start()
@@ -175,23 +203,55 @@ def peak_memory_child(method: str, preset_name: str, device: str) -> None:
         torch.cuda.reset_peak_memory_stats()
     policy = build(method, preset, device)
     trainer = Trainer(policy, make_batch(preset, policy.config, device), device)
-    for _ in range(3):
+    for _ in range(WARMUP):
         trainer.step()
     sampler.running = False
     sampler.join()
     print(torch.cuda.max_memory_allocated() if device.startswith("cuda") else sampler.peak - baseline)
 
 
-def measure_memory(preset_name: str, device: str) -> dict[str, int]:
+def measure_memory(args: argparse.Namespace) -> dict[str, int]:
     peaks = {}
-    for method in ("dp", "pacdp"):
-        out = subprocess.run(
-            [sys.executable, __file__, "--memory-child", method, "--preset", preset_name, "--device", device,
-             "--batch-size", str(PRESETS[preset_name].batch_size)],
-            capture_output=True, text=True, check=True,
-        )
+    for method in TRAINED:
+        command = [sys.executable, __file__, "--memory-child", method, "--preset", args.preset, "--device", args.device,
+                   "--batch-size", str(PRESETS[args.preset].batch_size), "--threads", str(args.threads)]
+        out = subprocess.run(command, capture_output=True, text=True, check=True)
         peaks[f"{method}_peak_bytes"] = int(out.stdout.strip().splitlines()[-1])
     return peaks
+
+
+def ratios(times: dict[str, float], memory: dict[str, int]) -> dict[str, dict[str, float]]:
+    """PAC-DP over each baseline; action chunks only against dp (the twin acts with the same network as dp)."""
+    over_dp = {
+        "train_step": times["pacdp_step_s"] / times["dp_step_s"],
+        "mean_mode_latency": times["pacdp_mean_chunk_s"] / times["dp_chunk_s"],
+        "sample_mode_latency": times["pacdp_sample_chunk_s"] / times["dp_chunk_s"],
+        "peak_memory": memory["pacdp_peak_bytes"] / memory["dp_peak_bytes"],
+    }
+    over_twin = {
+        "train_step": times["pacdp_step_s"] / times["twin_step_s"],
+        "peak_memory": memory["pacdp_peak_bytes"] / memory["twin_peak_bytes"],
+    }
+    return {"ratios_pacdp_over_dp": over_dp, "ratios_pacdp_over_twin": over_twin}
+
+
+def print_table(result: dict) -> None:
+    s, m, targets = result["seconds"], result["memory_bytes"], result["targets"]
+    over_dp, over_twin = result["ratios_pacdp_over_dp"], result["ratios_pacdp_over_twin"]
+    print(f"PAC-DP vs DP, preset={result['preset']}, device={result['device']}, "
+          f"down_dims={tuple(result['config']['down_dims'])}, batch={result['config']['batch_size']}")
+    print(f"{'metric':<24}{'DP':>10}{'twin':>10}{'PAC-DP':>10}{'/DP':>8}{'/twin':>8}{'target':>8}")
+
+    def row(label, key, dp, twin, pacdp, scale):
+        twin_cell = f"{twin * scale:>10.1f}" if twin is not None else f"{'':>10}"
+        twin_ratio = f"{over_twin[key]:>8.2f}" if key in over_twin else f"{'':>8}"
+        target = f"<={targets[key]:.2f}" if key in targets else ""
+        print(f"{label:<24}{dp * scale:>10.1f}{twin_cell}{pacdp * scale:>10.1f}{over_dp[key]:>8.2f}{twin_ratio}{target:>8}")
+
+    row("train step (ms)", "train_step", s["dp_step_s"], s["twin_step_s"], s["pacdp_step_s"], 1e3)
+    row("mean-mode chunk (ms)", "mean_mode_latency", s["dp_chunk_s"], None, s["pacdp_mean_chunk_s"], 1e3)
+    row("sample-mode chunk (ms)", "sample_mode_latency", s["dp_chunk_s"], None, s["pacdp_sample_chunk_s"], 1e3)
+    row("peak memory (MiB)", "peak_memory", m["dp_peak_bytes"], m["twin_peak_bytes"], m["pacdp_peak_bytes"], 2**-20)
 
 
 def main() -> None:
@@ -201,43 +261,43 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, help="override the preset's batch size")
     parser.add_argument("--train-steps", type=int, help="override the preset's timed training steps per method")
     parser.add_argument("--latency-calls", type=int, help="override the preset's timed action chunks per method")
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch intra-op threads")
+    parser.add_argument("--note", default="", help="what else ran on the machine, recorded in the JSON")
     parser.add_argument("--memory-child", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    torch.set_num_threads(args.threads)
     overrides = {"batch_size": args.batch_size, "train_steps": args.train_steps, "latency_calls": args.latency_calls}
-    overrides = {k: v for k, v in overrides.items() if v}
-    PRESETS[args.preset] = dataclasses.replace(PRESETS[args.preset], **overrides)
+    PRESETS[args.preset] = dataclasses.replace(PRESETS[args.preset], **{k: v for k, v in overrides.items() if v})
+    preset = PRESETS[args.preset]
     if args.memory_child:
-        peak_memory_child(args.memory_child, args.preset, args.device)
+        peak_memory_child(args.memory_child, preset, args.device)
         return
 
-    preset = PRESETS[args.preset]
+    load_before = os.getloadavg()
+    started = time.time()
     times = measure_times(preset, args.device)
-    memory = measure_memory(args.preset, args.device)
-    ratios = {
-        "train_step": times["pacdp_step_s"] / times["dp_step_s"],
-        "mean_mode_latency": times["pacdp_mean_chunk_s"] / times["dp_chunk_s"],
-        "sample_mode_latency": times["pacdp_sample_chunk_s"] / times["dp_chunk_s"],
-        "peak_memory": memory["pacdp_peak_bytes"] / memory["dp_peak_bytes"],
-    }
-    device_name = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"CPU ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)"
+    memory = measure_memory(args)
+    kind = "cuda" if args.device.startswith("cuda") else "cpu"
+    device_name = (
+        torch.cuda.get_device_name() if kind == "cuda"
+        else f"CPU ({platform.processor() or platform.machine()}, {args.threads} threads)"
+    )
     result = {
         "preset": args.preset,
-        "config": preset.__dict__,
+        "config": dataclasses.asdict(preset),
         "device": device_name,
         "torch": torch.__version__,
+        "command": " ".join(["python", "benchmarks/speed.py", *sys.argv[1:]]),
         "seconds": times,
         "memory_bytes": memory,
-        "ratios_pacdp_over_dp": ratios,
-        "targets": {"train_step": 1.3, "mean_mode_latency": 1.05},
+        **ratios(times, memory),
+        "targets": TARGETS.get((args.preset, kind), {}),
+        "machine_load": {"loadavg_1_5_15_before": load_before, "loadavg_1_5_15_after": os.getloadavg(),
+                         "wall_s": round(time.time() - started, 1), "note": args.note},
     }
-    print(f"PAC-DP vs DP, preset={args.preset}, device={device_name}, down_dims={preset.down_dims}, batch={preset.batch_size}")
-    print(f"{'metric':<22}{'DP':>12}{'PAC-DP':>12}{'ratio':>8}{'target':>8}")
-    print(f"{'train step (ms)':<22}{times['dp_step_s']*1e3:>12.1f}{times['pacdp_step_s']*1e3:>12.1f}{ratios['train_step']:>8.2f}{'<=1.30':>8}")
-    print(f"{'mean-mode chunk (ms)':<22}{times['dp_chunk_s']*1e3:>12.1f}{times['pacdp_mean_chunk_s']*1e3:>12.1f}{ratios['mean_mode_latency']:>8.2f}{'<=1.05':>8}")
-    print(f"{'sample-mode chunk (ms)':<22}{times['dp_chunk_s']*1e3:>12.1f}{times['pacdp_sample_chunk_s']*1e3:>12.1f}{ratios['sample_mode_latency']:>8.2f}{'':>8}")
-    print(f"{'peak memory (MiB)':<22}{memory['dp_peak_bytes']/2**20:>12.1f}{memory['pacdp_peak_bytes']/2**20:>12.1f}{ratios['peak_memory']:>8.2f}{'':>8}")
+    print_table(result)
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-    out = RESULTS_DIR / f"speed_{args.preset}_b{preset.batch_size}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
+    out = RESULTS_DIR / f"speed_{args.preset}_b{preset.batch_size}_{kind}.json"
     write_text_atomic(out, json.dumps(result, indent=2))
     print(f"wrote {out}")
 

@@ -46,7 +46,8 @@ def test_convert_train_resume_and_evaluate_pusht(tmp_path, pusht_zarr):
     checkpoint = out / "checkpoints" / "000004" / "pretrained_model"
     n_train = json.loads((checkpoint / "config.json").read_text())["num_train_samples"]
     assert 0 < n_train < frames  # one of the 4 demos is held out
-    assert f"N = {n_train} training samples (3 episodes" in log
+    assert f"N = {n_train} (3 episodes; training windows" in log
+    assert "serving the state-only dataset from memory" in log
     assert "eval_loss=" in log and "kl:" in log and "bound_sqrt_term:" in log
 
     _run([str(BIN / "lerobot-train"), f"--config_path={checkpoint / 'train_config.json'}", "--resume=true", "--steps=6",

@@ -24,10 +24,13 @@ def test_ddp_counts_the_kl_once_and_keeps_every_rank_identical(tmp_path):
     )
     assert result.returncode == 0, result.stderr[-4000:]
 
-    # Every rank ends with the same mu and rho.
+    # Every rank ends with the same mu and rho, trained and averaged (EMA).
     rank0, rank1 = (torch.load(tmp_path / f"final_rank{r}.pt") for r in (0, 1))
     assert rank0.keys() == rank1.keys()
+    assert any(k.startswith("raw_diffusion.") for k in rank0) and any(k.startswith("diffusion.") for k in rank0)
     assert all(torch.equal(rank0[k], rank1[k]) for k in rank0)
+    initial = torch.load(tmp_path / "initial.pt")
+    assert not torch.equal(rank0["diffusion.unet.final_conv.1.weight"], initial["diffusion.unet.final_conv.1.weight"])
 
     # Step 0's all-reduced gradient equals the single-process average of the two ranks' Eq. 9 losses,
     # each holding the KL once: so the KL enters the update once, not once per process.
@@ -40,7 +43,9 @@ def test_ddp_counts_the_kl_once_and_keeps_every_rank_identical(tmp_path):
         loss, _ = policy.forward(random_batch(config, seed=rank))
         (loss / 2).backward()
     ddp_grads = torch.load(tmp_path / "grads_step0.pt")
-    for name, param in policy.named_parameters():
+    trained = {name: param for name, param in policy.named_parameters() if param.requires_grad}
+    assert ddp_grads.keys() == trained.keys()
+    for name, param in trained.items():
         assert torch.allclose(ddp_grads[name], param.grad, rtol=1e-4, atol=1e-6), name
-    rho_grad = policy.unet.final_conv[1].weight_rho.grad
+    rho_grad = policy.trained_diffusion.unet.final_conv[1].weight_rho.grad
     assert rho_grad.abs().sum() > 0

@@ -1,5 +1,6 @@
 """PAC-DP inside LeRobot's own machinery: plugin discovery and the policy factory."""
 
+import logging
 import subprocess
 import sys
 from importlib.metadata import distribution
@@ -50,11 +51,16 @@ def _make(config: PacdpConfig, dataset: LeRobotDataset) -> PacdpPolicy:
     return make_policy(cfg=config, ds_meta=dataset.meta)
 
 
-def test_n_is_derived_from_the_selected_training_episodes_not_the_whole_dataset(tiny_dataset_root):
+def test_outside_lerobot_train_n_falls_back_to_the_training_windows_found_on_the_stack_and_warns(
+    tiny_dataset_root, caplog
+):
     dataset = LeRobotDataset("local/tiny", root=tiny_dataset_root, episodes=[1, 3])
-    policy = _make(PacdpConfig(device="cpu", down_dims=(16, 32), horizon=8), dataset)
-    assert policy.config.num_train_samples == 40 + 60 == dataset.num_frames
+    with caplog.at_level(logging.WARNING, logger="lerobot_pacdp.training_set"):
+        policy = _make(PacdpConfig(device="cpu", down_dims=(16, 32), horizon=8), dataset)
+    # Episodes of 40 and 60 frames; the sampler starts no window in the last drop_n_last_frames = 7 of each.
+    assert policy.config.num_train_samples == (40 - 7) + (60 - 7)
     assert dataset.meta.total_frames == 180
+    assert "--policy.num_train_samples" in caplog.text
 
 
 def test_an_explicit_n_is_kept(tiny_dataset_root):

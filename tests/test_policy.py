@@ -1,10 +1,8 @@
-import dataclasses
 import json
 import math
 
 import pytest
 import torch
-from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 from safetensors.torch import load_file, save_file
 
@@ -102,14 +100,15 @@ def test_training_forward_returns_eq9_and_logs_its_parts():
 def test_kl_is_zero_at_init_and_positive_after_a_step_and_gradients_reach_mu_and_rho():
     policy = _policy(kl_weight=1e-3)
     policy.train()
-    assert kl_divergence(policy.unet).item() == 0.0
+    trained = policy.trained_diffusion.unet
+    assert kl_divergence(trained).item() == 0.0
     optimizer = torch.optim.Adam(policy.get_optim_params(), lr=1e-3)
     loss, _ = policy.forward(random_batch(policy.config))
     loss.backward()
-    layer = policy.unet.final_conv[1]
+    layer = trained.final_conv[1]
     assert layer.weight.grad.abs().sum() > 0 and layer.weight_rho.grad.abs().sum() > 0
     optimizer.step()
-    assert kl_divergence(policy.unet).item() > 0
+    assert kl_divergence(trained).item() > 0
 
 
 def test_optimizer_groups_exempt_rho_from_weight_decay():
@@ -120,7 +119,9 @@ def test_optimizer_groups_exempt_rho_from_weight_decay():
     names = {id(p): n for n, p in policy.named_parameters()}
     assert all(names[id(p)].endswith("_rho") for p in groups[1]["params"])
     assert not any(names[id(p)].endswith("_rho") for p in groups[0]["params"])
-    assert len(groups[0]["params"]) + len(groups[1]["params"]) == len(list(policy.parameters()))
+    trained = [n for n, p in policy.named_parameters() if p.requires_grad]
+    assert trained and all(n.startswith("raw_diffusion.") for n in trained)  # the EMA copy is not optimised
+    assert len(groups[0]["params"]) + len(groups[1]["params"]) == len(trained)
 
 
 def test_eval_forward_is_the_posterior_mean_denoising_error():
@@ -145,30 +146,29 @@ def test_training_loss_masks_padded_actions():
 
 
 def _plain_diffusion_copy(policy: PacdpPolicy) -> DiffusionPolicy:
-    pac_fields = {f.name for f in dataclasses.fields(PacdpConfig)} - {f.name for f in dataclasses.fields(DiffusionConfig)}
-    values = {
-        f.name: getattr(policy.config, f.name)
-        for f in dataclasses.fields(DiffusionConfig)
-        if f.init and f.name not in pac_fields
-    }
-    config = DiffusionConfig(**values)
-    config.input_features, config.output_features = policy.config.input_features, policy.config.output_features
-    plain = DiffusionPolicy(config)
+    plain = DiffusionPolicy(policy.config.diffusion_twin())
     missing, unexpected = plain.load_state_dict(policy.state_dict(), strict=False)
     assert missing == []
-    assert unexpected and all(k.endswith(BAYESIAN_SUFFIXES) for k in unexpected)
+    training_only = [k for k in unexpected if k.startswith("raw_diffusion.") or k == "num_updates"]
+    assert training_only and all(k.endswith(BAYESIAN_SUFFIXES) for k in set(unexpected) - set(training_only))
     return plain.eval()
+
+
+def _train_steps(policy: PacdpPolicy, steps: int, lr: float = 1e-2) -> None:
+    """Optimizer steps as lerobot-train makes them, the EMA update included."""
+    policy.train()
+    optimizer = torch.optim.Adam(policy.get_optim_params(), lr=lr)
+    for step in range(steps):
+        loss, _ = policy.forward(random_batch(policy.config, seed=step))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        policy.update()
 
 
 def test_mean_mode_actions_equal_a_plain_diffusion_policy_with_weights_mu():
     policy = _policy()
-    policy.train()
-    optimizer = torch.optim.Adam(policy.get_optim_params(), lr=1e-2)
-    for _ in range(2):  # move mu away from the prior so the check is not trivial
-        loss, _ = policy.forward(random_batch(policy.config))
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+    _train_steps(policy, 3)  # move mu (and its EMA) away from the prior so the check is not trivial
     policy.eval()
     plain = _plain_diffusion_copy(policy)
     obs = _observation()
@@ -214,10 +214,7 @@ def test_mean_mode_is_deterministic_across_chunks():
 
 def test_save_load_round_trip_restores_mu_rho_and_prior_exactly(tmp_path):
     policy = _policy(kl_weight=1e-3)
-    policy.train()
-    loss, _ = policy.forward(random_batch(policy.config))
-    loss.backward()
-    torch.optim.Adam(policy.get_optim_params(), lr=1e-2).step()
+    _train_steps(policy, 3)
     policy.save_pretrained(tmp_path)
     saved = json.loads((tmp_path / "config.json").read_text())
     assert saved["type"] == "pacdp" and saved["num_train_samples"] == 1000 and saved["kl_weight"] == 1e-3

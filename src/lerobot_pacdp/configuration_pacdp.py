@@ -6,8 +6,9 @@ the PAC-Bayes objective of paper Eq. 9. So the config is `DiffusionConfig` plus 
 hyper-parameters, with defaults switched to Diffusion Policy's state-based setup.
 """
 
+import copy
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
@@ -21,27 +22,40 @@ class PacdpConfig(DiffusionConfig):
     """PAC-DP policy configuration.
 
     Args:
+        bayesian: True makes the U-Net Bayesian and trains on Eq. 9 (PAC-DP, or BDP with kl_weight=0);
+            False builds the same policy with deterministic layers trained on the plain denoising loss:
+            the DP baseline that differs from PAC-DP only in what the paper changes.
         kl_weight: lambda in paper Eq. 9. 0 gives the BDP baseline (Bayesian U-Net, no KL pressure).
-            The paper's values (PushT 1e-4; Lift/Can/ToolHang 1e-5; Square/Transport 1e-6) are on the
-            scale where N counts training frames, as `num_train_samples` does here.
+            The paper's values: PushT 1e-4; Lift/Can/ToolHang 1e-5; Square/Transport 1e-6.
         prior_rho: rho of the prior P; prior sigma = softplus(prior_rho) (Eq. 7). -4.5 gives 0.0110.
         delta: confidence parameter of the bound (Eq. 9), in (0, 1).
-        num_train_samples: N in Eq. 9. None derives it at construction from the dataset actually
-            used for training (frames of the selected training episodes, held-out split excluded) and
-            writes it back here, so it is saved in config.json and reused on resume.
+        num_train_samples: N in Eq. 9. None lets lerobot-train derive it from the dataset it trains on
+            (the windows its sampler draws: frames of the training episodes minus `drop_n_last_frames`
+            each, held-out split excluded) and write it back here, so it is saved in config.json.
         bayesian_conditioning: False keeps the FiLM conditioning projections deterministic (the
             paper's architecture); True makes them Bayesian too (the paper's "Full BN" ablation).
         inference_mode: "mean" acts with the posterior mean mu; "sample" draws one weight sample per
             generated action chunk (paper Algorithm 2).
+        use_ema: act, evaluate and publish with an exponential moving average of the trained weights, as
+            Diffusion Policy does (`lerobot_pacdp.ema`: Chi et al.'s schedule).
+        ema_power, ema_max_decay: the EMA warm-up exponent and the cap of its decay (Chi: 0.75, 0.9999).
+        freeze_deterministic: keep every non-Bayesian tensor (FiLM projections, GroupNorm, observation
+            encoders) at a value fixed before training (`lerobot_pacdp.certification`), so that only the
+            posterior depends on the demonstrations, as `pacdp-certify` requires.
     """
 
     # PAC-Bayes objective and posterior.
+    bayesian: bool = True
     kl_weight: float = 1e-4
     prior_rho: float = -4.5
     delta: float = 0.025
     num_train_samples: int | None = None
     bayesian_conditioning: bool = False
     inference_mode: str = "mean"
+    use_ema: bool = True
+    ema_power: float = 0.75
+    ema_max_decay: float = 0.9999
+    freeze_deterministic: bool = False
 
     # Diffusion Policy's state-based setup (Chi et al.), not LeRobot's image-based defaults.
     horizon: int = 16
@@ -92,8 +106,30 @@ class PacdpConfig(DiffusionConfig):
             raise ValueError(
                 f"`inference_mode` must be one of {INFERENCE_MODES}, got {self.inference_mode!r}."
             )
+        if not self.bayesian and self.inference_mode == "sample":
+            raise ValueError(
+                "`inference_mode='sample'` needs a Bayesian U-Net, but `bayesian=False`. "
+                "Use `inference_mode=mean`, or `bayesian=true`."
+            )
+        if self.freeze_deterministic and not self.bayesian:
+            raise ValueError(
+                "`freeze_deterministic=True` freezes everything but the posterior, and `bayesian=False` has "
+                "none: nothing would train. Use `bayesian=true` or `freeze_deterministic=false`."
+            )
+        if not (math.isfinite(self.ema_power) and self.ema_power > 0):
+            raise ValueError(f"`ema_power` must be a finite number > 0, got {self.ema_power} (Chi et al.: 0.75).")
+        if not (0.0 <= self.ema_max_decay < 1.0):
+            raise ValueError(
+                f"`ema_max_decay` must lie in [0, 1), got {self.ema_max_decay} (Chi et al.: 0.9999). "
+                "Use `use_ema=false` to act with the trained weights themselves."
+            )
         if self.compile_model:
             raise ValueError(
                 "`compile_model=True` is not supported by pacdp: LeRobot compiles the U-Net before its "
                 "layers are made Bayesian. Leave `--policy.compile_model=false`."
             )
+
+    def diffusion_twin(self) -> DiffusionConfig:
+        """LeRobot's `diffusion` config with every shared field equal to this one (no EMA, no Bayesian layers)."""
+        shared = {f.name: getattr(self, f.name) for f in fields(DiffusionConfig) if f.init}
+        return DiffusionConfig(**copy.deepcopy(shared))

@@ -17,9 +17,11 @@ def tiny_dataset(tmp_path_factory) -> LeRobotDataset:
 
 @pytest.fixture(scope="session")
 def tiny_runs(tmp_path_factory, tiny_dataset) -> dict[str, Path]:
-    """Two PAC-DP seeds, one BDP and one LeRobot-diffusion (DP) run."""
+    """Two PAC-DP seeds, one BDP, one LeRobot-diffusion (DP) run, and a PAC-DP run trained with
+    `freeze_deterministic` (the only kind `pacdp-certify` accepts with a data-free prior)."""
     base = tmp_path_factory.mktemp("runs")
     kinds = {"pacdp_s0": ("pacdp", 0), "pacdp_s1": ("pacdp", 1), "bdp_s0": ("bdp", 2), "dp_s0": ("diffusion", 3)}
+    kinds["frozen_s0"] = ("pacdp_frozen", 4)
     return {name: make_run(base / name, tiny_dataset, kind, seed) for name, (kind, seed) in kinds.items()}
 
 

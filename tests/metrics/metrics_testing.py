@@ -10,6 +10,7 @@ from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 from lerobot.policies.factory import make_pre_post_processors
 
+from lerobot_pacdp.certification import deterministic_tensors
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
 from pacdp_testing import tiny_config, tiny_features
 
@@ -31,14 +32,17 @@ def diffusion_config() -> DiffusionConfig:
     return config
 
 
-def save_checkpoint(policy, dataset: LeRobotDataset, pretrained_dir: Path, eval_split: float = EVAL_SPLIT) -> Path:
-    """What lerobot-train writes into checkpoints/<step>/pretrained_model: weights, config, processors."""
+def save_checkpoint(
+    policy, dataset: LeRobotDataset, pretrained_dir: Path, eval_split: float = EVAL_SPLIT, episodes=None
+) -> Path:
+    """What lerobot-train writes into checkpoints/<step>/pretrained_model: weights, config, processors
+    (trained on `episodes`, default all, minus the eval split)."""
     preprocessor, postprocessor = make_pre_post_processors(policy.config, dataset_stats=dataset.meta.stats)
     policy.save_pretrained(pretrained_dir)
     preprocessor.save_pretrained(pretrained_dir)
     postprocessor.save_pretrained(pretrained_dir)
     train_config = TrainPipelineConfig(
-        dataset=DatasetConfig(repo_id=REPO_ID, root=str(dataset.root), eval_split=eval_split),
+        dataset=DatasetConfig(repo_id=REPO_ID, root=str(dataset.root), eval_split=eval_split, episodes=episodes),
         policy=policy.config,
         output_dir=pretrained_dir.parents[2],
     )
@@ -47,11 +51,14 @@ def save_checkpoint(policy, dataset: LeRobotDataset, pretrained_dir: Path, eval_
 
 
 def perturb(policy, seed: int, scale: float = 0.05) -> None:
-    """Stand-in for training: move every parameter a little (deterministically)."""
+    """Stand-in for training: move every trained parameter a little (deterministically); with
+    `freeze_deterministic` the deterministic tensors keep their reference, as in training."""
+    frozen = set(deterministic_tensors(policy.diffusion)) if getattr(policy.config, "freeze_deterministic", False) else set()
     generator = torch.Generator().manual_seed(seed)
     with torch.no_grad():
-        for parameter in policy.parameters():
-            parameter.add_(scale * torch.randn(parameter.shape, generator=generator))
+        for name, parameter in policy.named_parameters():
+            if name.split(".", 1)[1] not in frozen:
+                parameter.add_(scale * torch.randn(parameter.shape, generator=generator))
 
 
 def make_run(run_dir: Path, dataset: LeRobotDataset, kind: str, seed: int) -> Path:
@@ -61,7 +68,8 @@ def make_run(run_dir: Path, dataset: LeRobotDataset, kind: str, seed: int) -> Pa
         if kind == "diffusion":
             policy = DiffusionPolicy(diffusion_config())
         else:
-            policy = PacdpPolicy(pacdp_config(kl_weight=1e-4 if kind == "pacdp" else 0.0))
+            frozen = kind == "pacdp_frozen"
+            policy = PacdpPolicy(pacdp_config(kl_weight=0.0 if kind == "bdp" else 1e-4, freeze_deterministic=frozen))
         perturb(policy, seed * 1000 + step)
         save_checkpoint(policy, dataset, run_dir / "checkpoints" / f"{step:06d}" / "pretrained_model")
     (run_dir / "checkpoints" / "last").symlink_to(f"{STEPS[-1]:06d}")

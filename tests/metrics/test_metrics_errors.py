@@ -111,3 +111,16 @@ def test_console_scripts_are_these_mains():
     assert scripts["pacdp-metrics"].load() is sweep.main
     assert scripts["pacdp-certify"].load() is certificate.main
     assert scripts["pacdp-learned-prior"].load() is learned_prior.main
+
+
+def test_a_truncated_checkpoint_is_one_line_and_leaves_no_output(tiny_runs, tmp_path, capsys):
+    run = shutil.copytree(tiny_runs["frozen_s0"], tmp_path / "run", symlinks=True)
+    weights = run / "checkpoints" / "000100" / "pretrained_model" / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[:1000])  # a run killed while writing its first checkpoint
+    out = tmp_path / "metrics"
+    _cli_fails(sweep.main, [f"--runs={run}", f"--output_dir={out}", "--nll=false"], capsys,
+               "pacdp-metrics: error: cannot load the checkpoint", "000100", "truncated")  # fmt: skip
+    assert not out.exists()
+    cert = tmp_path / "cert.json"
+    _cli_fails(certificate.main, [f"--checkpoint={weights.parent}", f"--output={cert}"], capsys, "truncated")
+    assert not cert.exists()

@@ -1,4 +1,4 @@
-"""`pacdp-metrics` over lerobot-train-shaped run directories: tables, plots, summary, resume."""
+"""`pacdp-metrics` over lerobot-train-shaped run directories: tables, plots, summary, resume, paired errors."""
 
 import csv
 import json
@@ -10,9 +10,11 @@ import torch
 
 from lerobot_pacdp.bayesian_layers import exact_kl
 from lerobot_pacdp.metrics import sweep
-from lerobot_pacdp.metrics.checkpoints import load_policy
+from lerobot_pacdp.metrics.checkpoints import MetricsError, load_policy
+from lerobot_pacdp.metrics.comparison import paired_npe_difference
 from lerobot_pacdp.metrics.data import EvaluationData
 from lerobot_pacdp.metrics.nll_bound import GaussianBaseline
+from lerobot_pacdp.metrics.noise_prediction import alphas_cumprod, noise_prediction_errors, policy_denoiser
 from metrics_testing import REPO_ID, STEPS
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -77,6 +79,7 @@ def test_summary_is_the_mean_of_the_last_k_checkpoints_then_mean_std_over_runs(s
     assert entry["npe"]["mean"] == pytest.approx(sum(per_run) / 2)
     assert entry["npe"]["std"] == pytest.approx(abs(per_run[0] - per_run[1]) / math.sqrt(2))  # sample std
     assert summary["methods"]["DP"]["npe"]["std"] == 0.0
+    assert entry["nll_bound_bits"]["mean"] == pytest.approx(entry["nll_bound"]["mean"] / math.log(2))
 
 
 def test_resume_reuses_stored_rows_and_labels_group_runs(swept, tiny_runs, monkeypatch, capsys):
@@ -137,3 +140,52 @@ def test_success_rate_through_lerobots_eval_loop(tiny_runs, tmp_path):
     assert all(r["success_rate"] == 0.0 and r["nll_bound"] is None for r in rows)  # 3 steps cannot push the T home
     assert (tmp_path / "success_rate.png").read_bytes()[:8] == PNG_MAGIC
     assert not (tmp_path / "nll_bound.png").exists()
+
+
+def test_rows_carry_bits_clustered_errors_and_the_step0_error(swept):
+    out, _ = swept
+    rows = json.loads((out / "metrics.json").read_text())["rows"]
+    with open(out / "metrics.csv") as f:
+        header = next(csv.reader(f))
+    assert header == sweep.CSV_COLUMNS  # the study's columns first, unchanged; the new ones after them
+    for row in rows:
+        assert row["nll_bound_bits"] == pytest.approx(row["nll_bound"] / math.log(2))
+        assert row["nll_baseline_bits"] == pytest.approx(row["nll_baseline"] / math.log(2))
+        assert row["nll_paper_compatible_bits"] is None  # --nll_steps=8: not every step was evaluated
+        assert row["npe_clusters"] == 3 and row["npe_sem"] > 0 and row["npe_sem_iid"] > 0
+        counts, sums = row["npe_episode_counts"], row["npe_episode_sums"]
+        assert row["npe_episodes"] == [3, 4, 5] and sum(counts) == row["npe_examples"]
+        assert row["npe"] == pytest.approx(sum(sums) / sum(counts))
+        assert row["nll_steps"][0] == 0 and len(row["heldout_error_per_step"]) == len(row["nll_steps"]) == 8
+        assert row["heldout_error_step0"] == row["heldout_error_per_step"][0] > 0
+
+
+def test_paired_npe_difference_of_two_checkpoints_equals_the_per_window_computation(swept, tiny_runs, tiny_dataset):
+    out, _ = swept
+    rows = {r["checkpoint"]: r for r in json.loads((out / "metrics.json").read_text())["rows"]}
+    paths = [tiny_runs[name] / "checkpoints" / "000300" / "pretrained_model" for name in ("pacdp_s0", "bdp_s0")]
+    difference = paired_npe_difference(rows[str(paths[0])], rows[str(paths[1])])
+    errors = []
+    for path in paths:  # by hand: each checkpoint's per-window errors on the same seeded draws
+        loaded = load_policy(path)
+        data = EvaluationData(loaded.policy.config, REPO_ID, tiny_dataset.root, [3, 4, 5])
+        batch = next(data.batches(loaded, batch_size=len(data)))
+        denoiser = policy_denoiser(loaded.policy, batch.global_cond)
+        alpha_bar = alphas_cumprod(loaded.policy)
+        errors.append(noise_prediction_errors(denoiser, batch.actions, batch.valid, batch.index, alpha_bar, seed=0))
+    gap, episode = errors[0] - errors[1], batch.episode
+    assert difference.mean == pytest.approx(gap.mean().item(), rel=1e-5)  # float32 batches of 32 vs one
+    residuals = torch.stack([(gap[episode == e] - gap.mean()).sum() for e in (3, 4, 5)])
+    assert difference.sem == pytest.approx(math.sqrt(3 / 2 * residuals.square().sum().item()) / len(gap), rel=1e-4)
+    with pytest.raises(MetricsError, match="per-episode NPE sums"):
+        paired_npe_difference({"checkpoint": "old"}, rows[str(paths[1])])
+
+
+def test_with_every_diffusion_step_the_row_has_the_paper_compatible_value(tiny_runs, tiny_dataset, tmp_path):
+    checkpoint = tiny_runs["pacdp_s1"] / "checkpoints" / "000300"
+    argv = [f"--runs={checkpoint}", f"--output_dir={tmp_path}", f"--dataset.repo_id={REPO_ID}",
+            f"--dataset.root={tiny_dataset.root}", "--episodes=3-5"]  # fmt: skip
+    assert sweep.main(argv) == 0
+    [row] = json.loads((tmp_path / "metrics.json").read_text())["rows"]
+    assert len(row["nll_steps"]) == 100 and math.isfinite(row["nll_paper_compatible_bits"])
+    assert (tmp_path / "nll_paper_compatible_bits.png").read_bytes()[:8] == PNG_MAGIC

@@ -6,7 +6,14 @@ import pytest
 import torch
 from diffusers import DDPMScheduler
 
-from lerobot_pacdp.metrics.nll_bound import GaussianBaseline, NllAccumulator, log_snr, nll_step_errors
+from lerobot_pacdp.metrics.nll_bound import (
+    GaussianBaseline,
+    NllAccumulator,
+    log_snr,
+    nll_bound_from_gain,
+    nll_step_errors,
+    paper_compatible_nll,
+)
 
 CHUNK = (2, 2)  # (horizon, action_dim): d = 4
 D = 4
@@ -135,3 +142,50 @@ def test_per_step_draws_do_not_depend_on_the_batch_or_on_which_steps_are_evaluat
     torch.testing.assert_close(full, split, rtol=0, atol=0)
     torch.testing.assert_close(full[:, [3, 50, 99]], subset, rtol=0, atol=0)
     assert not torch.equal(full, nll_step_errors(denoiser, chunks, index, alpha_bar, range(100), seed=8))
+
+
+def test_at_pusht_shape_the_bound_holds_and_the_paper_compatible_value_is_biased_far_below_the_truth():
+    """d = 32 (horizon 16 x 2 actions), covariance eigenvalues from 1 down to 1e-5, exact denoiser.
+
+    The bound equals the true entropy (the Gaussian baseline is the truth, so no gain is claimed) and
+    never goes below it. The paper-compatible estimate (not a bound) snaps the 39 of its 100 log-SNRs that
+    lie above the schedule's top (7.37) to step 0 and compares step 0's error with the Gaussian's error at
+    the requested log-SNR: it comes out 1.68 nats/dim (2.4 bits/dim) *below* the true entropy, and below
+    the floor that any bound on the schedule's log-SNR range can reach (a denoiser with zero error).
+    """
+    d, generator = 32, torch.Generator().manual_seed(0)
+    basis, _ = torch.linalg.qr(torch.randn(d, d, generator=generator, dtype=torch.float64))
+    truth = GaussianBaseline(torch.zeros(d, dtype=torch.float64), torch.logspace(0, -5, d, dtype=torch.float64), basis)
+    chunks = ((torch.randn(2000, d, generator=generator, dtype=torch.float64) * truth.eigenvalues.sqrt()) @ basis.T)
+    alpha_bar = cosine_schedule()
+    result = bound(truth.denoiser(alpha_bar), chunks.reshape(-1, 16, 2), alpha_bar)
+    true_entropy = truth.entropy / d  # -1.459 nats/dim
+    assert true_entropy - 0.002 <= result.nats_per_dim <= true_entropy + 0.002
+    assert result.bits_per_dim == pytest.approx(result.nats_per_dim / math.log(2))
+    paper = result.paper_compatible
+    assert paper is not None and paper.fraction_above_schedule == pytest.approx(0.39)
+    assert all(k == 0 for a, k in zip(paper.log_snr, paper.steps, strict=True) if a > 7.37)
+    assert paper.nats_per_dim == pytest.approx(true_entropy - 1.68, abs=0.02)
+    assert paper.bits_per_dim == pytest.approx(paper.nats_per_dim / math.log(2))
+    a = log_snr(alpha_bar)
+    floor = nll_bound_from_gain(a, truth.mmse(a), truth)  # the bound of a perfect (zero-error) denoiser
+    assert paper.nats_per_dim < floor < true_entropy
+
+
+def test_the_paper_compatible_value_needs_every_step_and_is_the_logistic_estimate_by_hand():
+    eigenvalues = torch.tensor([1.0, 0.1], dtype=torch.float64)
+    baseline = GaussianBaseline(torch.zeros(2, dtype=torch.float64), eigenvalues, torch.eye(2, dtype=torch.float64))
+    alpha_bar = cosine_schedule()
+    zero_error = torch.zeros(100, dtype=torch.float64)
+    result = paper_compatible_nll(alpha_bar, zero_error, baseline)
+    # By hand: loc = -mean(log l) = 1.151, scale = sqrt(1 + 3/pi * var(log l)) with the unbiased variance.
+    loc, scale = -math.log(0.1) / 2, math.sqrt(1 + 3 / math.pi * (math.log(0.1) ** 2 / 2))
+    u = torch.rand(100, generator=torch.Generator().manual_seed(0)).double()
+    p = torch.sigmoid(torch.tensor(-4.0)).item() + (torch.sigmoid(torch.tensor(4.0)).item() - torch.sigmoid(torch.tensor(-4.0)).item()) * u
+    a = torch.sort(loc + scale * torch.log(p / (1 - p))).values
+    w = scale * math.tanh(2.0) / (torch.sigmoid((a - loc) / scale) * torch.sigmoid(-(a - loc) / scale))
+    expected = (baseline.entropy - 0.5 * (w * baseline.mmse(a)).mean().item()) / 2  # zero error: gap = mmse_G
+    assert result.nats_per_dim == pytest.approx(expected, rel=1e-9)
+    torch.testing.assert_close(torch.tensor(result.log_snr, dtype=torch.float64), a)
+    with pytest.raises(ValueError, match="every step"):
+        paper_compatible_nll(alpha_bar, zero_error[:50], baseline)

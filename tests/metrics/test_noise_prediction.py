@@ -1,4 +1,7 @@
-"""NPE: paired, seeded per-example draws; masking like training; the held-out data plumbing."""
+"""NPE: paired, seeded per-example draws; masking like training; errors clustered by episode; the held-out
+data plumbing."""
+
+import math
 
 import pytest
 import torch
@@ -6,6 +9,7 @@ import torch
 from lerobot_pacdp.metrics.checkpoints import load_policy
 from lerobot_pacdp.metrics.data import EvaluationData, split_from_train_config
 from lerobot_pacdp.metrics.noise_prediction import (
+    EpisodeSums,
     MeanWithError,
     alphas_cumprod,
     noise_prediction_errors,
@@ -103,3 +107,35 @@ def test_standard_error_is_over_examples():
     stats = MeanWithError.of(values)
     assert stats.mean == 2.5 and stats.n == 4
     assert stats.sem == pytest.approx(values.std().item() / 2)
+
+
+def test_the_standard_error_is_clustered_by_episode_by_hand():
+    values, episodes = torch.tensor([1.0, 2.0, 3.0, 4.0, 5.0, 6.0]), torch.tensor([7, 7, 7, 9, 9, 9])
+    clustered = EpisodeSums.of(values, episodes).mean_with_error()
+    # mean 3.5; residual sums per episode 6 - 3 * 3.5 = -4.5 and 15 - 10.5 = 4.5;
+    # var = G / (G - 1) * sum r_g^2 / n^2 = 2 * 40.5 / 36 = 2.25.
+    assert clustered.mean == 3.5 and clustered.n == 6 and clustered.clusters == 2
+    assert clustered.sem == pytest.approx(1.5)
+    assert MeanWithError.of(values).sem == pytest.approx(values.std().item() / math.sqrt(6))  # 0.76: too optimistic
+    # One window per episode: the clustered error is the independent-examples error.
+    singletons = EpisodeSums.of(values, torch.arange(6)).mean_with_error()
+    assert singletons.sem == pytest.approx(MeanWithError.of(values).sem)
+
+
+def test_paired_difference_of_two_checkpoints_by_hand():
+    episodes = torch.tensor([0, 0, 1, 1])
+    a, b = EpisodeSums.of(torch.tensor([1.0, 2.0, 3.0, 4.0]), episodes), EpisodeSums.of(torch.tensor([1.0, 1.0, 2.0, 2.0]), episodes)
+    diff = a.minus(b).mean_with_error()
+    # differences 0, 1, 1, 2: mean 1; residual sums 1 - 2 = -1 and 3 - 2 = 1; var = 2 * 2 / 16.
+    assert diff.mean == 1.0 and diff.sem == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="same windows"):
+        a.minus(EpisodeSums.of(torch.tensor([1.0, 2.0, 3.0]), torch.tensor([0, 0, 1])))
+
+
+def test_cached_windows_are_lerobots_windows(heldout):
+    loaded, data = heldout
+    cached = next(data.batches(loaded, batch_size=len(data)))
+    lerobot = EvaluationData(data.config, REPO_ID, data.dataset.root, [3, 4, 5], cache=False)
+    direct = next(lerobot.batches(loaded, batch_size=len(data)))
+    for name in ("actions", "valid", "global_cond", "index", "episode"):
+        assert torch.equal(getattr(cached, name), getattr(direct, name)), name

@@ -38,6 +38,10 @@ class DatasetMismatchError(MetricsError):
     pass
 
 
+class CorruptCheckpointError(MetricsError):
+    pass
+
+
 @dataclass
 class LoadedPolicy:
     """A checkpoint ready for evaluation: the policy (eval mode) and its saved processors."""
@@ -87,10 +91,17 @@ def load_policy(path: str | Path, device: str | None = None) -> LoadedPolicy:
     """Load a `pacdp` or `diffusion` checkpoint and its saved preprocessor (normalisation stats)."""
     pretrained_dir = resolve_pretrained_dir(path)
     policy_type = checkpoint_policy_type(pretrained_dir)
-    config = PreTrainedConfig.from_pretrained(pretrained_dir)
-    if device is not None:
-        config.device = device
-    policy = get_policy_class(policy_type).from_pretrained(pretrained_dir, config=config)
+    try:  # safetensors, draccus and the policies raise many types for a truncated or foreign file
+        config = PreTrainedConfig.from_pretrained(pretrained_dir)
+        if device is not None:
+            config.device = device
+        policy = get_policy_class(policy_type).from_pretrained(pretrained_dir, config=config)
+    except Exception as exc:
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise CorruptCheckpointError(
+            f"cannot load the checkpoint {pretrained_dir}: {reason}. Its files are truncated, corrupt or from "
+            "another network (was the run killed while writing it?); evaluate another checkpoint."
+        ) from None
     try:
         preprocessor, postprocessor = make_pre_post_processors(
             config,

@@ -23,6 +23,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from lerobot_pacdp.episodes import EpisodeSelectionError, parse_episodes
+from lerobot_pacdp.in_memory_data import InMemoryStateDataset, unsupported_reason
 from lerobot_pacdp.metrics.checkpoints import DatasetMismatchError, LoadedPolicy, MetricsError
 
 
@@ -131,8 +132,9 @@ class EvaluationData:
     """Windowed frames of `episodes` of a LeRobotDataset, for one policy configuration.
 
     With `cache` (default: when the policy uses no images) the raw windows are read once and kept in
-    memory: LeRobot's windowed reads (~10 ms a window on a CPU) dominate the cost of evaluating a
-    state-based U-Net, and a sweep evaluates the same windows for every checkpoint.
+    memory, through `InMemoryStateDataset` when the dataset is state-only: LeRobot's windowed reads (~10-50
+    ms a window on a CPU) dominate the cost of evaluating a state-based U-Net, and a sweep evaluates the same
+    windows for every checkpoint.
     """
 
     def __init__(
@@ -181,9 +183,10 @@ class EvaluationData:
     def __len__(self) -> int:
         return len(self.positions)
 
-    def _loader(self, batch_size: int) -> torch.utils.data.DataLoader:
+    def _loader(self, batch_size: int, in_memory: bool = False) -> torch.utils.data.DataLoader:
+        dataset = InMemoryStateDataset(self.dataset) if in_memory else self.dataset
         return torch.utils.data.DataLoader(
-            self.dataset, batch_size=batch_size, sampler=self.positions, num_workers=self.num_workers
+            dataset, batch_size=batch_size, sampler=self.positions, num_workers=self.num_workers
         )
 
     def _raw_batches(self, batch_size: int) -> Iterator[dict]:
@@ -191,7 +194,8 @@ class EvaluationData:
             yield from self._loader(batch_size)
             return
         if self._windows is None:
-            chunks = list(tqdm(self._loader(1024), desc="reading windows", leave=False))
+            loader = self._loader(1024, in_memory=unsupported_reason(self.dataset) is None)
+            chunks = list(tqdm(loader, desc="reading windows", leave=False))
             self._windows = {k: torch.cat([c[k] for c in chunks]) for k, v in chunks[0].items() if torch.is_tensor(v)}
         for start in range(0, len(self), batch_size):
             yield {key: value[start : start + batch_size] for key, value in self._windows.items()}

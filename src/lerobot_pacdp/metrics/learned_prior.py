@@ -4,23 +4,26 @@ With a data-free prior (sigma_p = 0.011 around a random init) a U-Net's KL(Q||P)
 demonstrations and the certificate is vacuous. Centring the prior on a network trained on split A and
 certifying on a disjoint split B keeps the bound valid (the prior never sees B) and the KL small.
 
-Recipe (split A = demos 0-69, split B = demos 70-199 here):
+Recipe (split A = demos 0-69, split B = demos 70-199 here; results/certificate/ runs it on PushT):
 
 1. Train DP (or BDP/PAC-DP) on split A:
    lerobot-train --policy.type=diffusion ... --dataset.episodes='[0,...,69]' --output_dir=outputs/prior_A
-2. Build the PAC-DP prior checkpoint from it (prior means = initial posterior means = its weights):
+2. Build the PAC-DP prior checkpoint from it (prior means = initial posterior means = its weights; its
+   deterministic tensors stay fixed during fine-tuning, `freeze_deterministic=true`):
    pacdp-learned-prior --source=outputs/prior_A/checkpoints/last/pretrained_model \
        --output_dir=outputs/prior_A_pacdp --prior_rho=-4.5 --kl_weight=1e-4
-3. Fine-tune PAC-DP on split B (N is derived from split B's training frames):
+3. Fine-tune PAC-DP on split B (N is derived from split B's training windows):
    lerobot-train --policy.path=outputs/prior_A_pacdp --dataset.repo_id=... \
        --dataset.episodes='[70,...,199]' --dataset.eval_split=0.3 --output_dir=outputs/pacdp_B
 4. Certify on split B's training demonstrations (and bound the mean network on B's held-out ones):
    pacdp-certify --checkpoint=outputs/pacdp_B/checkpoints/last/pretrained_model --prior=outputs/prior_A_pacdp
 
 `learned_prior.json` in the built directory records split A's episodes (its run's training and held-out
-ones), and `pacdp-certify --prior` refuses to certify on, or test on, any of them. Caveat: LeRobot's
-normalisation stats are computed over the whole dataset (A and B); for a strictly B-independent prior,
-build the dataset of split A alone.
+ones), and `pacdp-certify --prior` refuses to certify on, or test on, any of them; it also refuses a
+checkpoint whose prior tensors, deterministic tensors or normalisation statistics are not the prior
+directory's. Normalisation: lerobot-train normalises with the dataset's `meta/stats.json`, so for a prior
+(and a loss) independent of split B those statistics must come from split A alone (results/certificate/
+shows how); with LeRobot's default whole-dataset statistics they depend, weakly, on split B.
 """
 
 import json
@@ -55,6 +58,8 @@ PROCESSOR_PATTERNS = ("policy_preprocessor*", "policy_postprocessor*")
 _PRIOR_MU_SUFFIX = "_prior_mu"
 _KEPT_SUFFIXES = ("_rho", "prior_rho")  # the new posterior's rho starts at the prior's rho (Q = P)
 _COMPILED_PREFIX = "_orig_mod."  # torch.compile'd U-Nets save their keys under this prefix
+_ACTING_PREFIX, _RAW_PREFIX = "diffusion.", "raw_diffusion."  # with EMA: the average acts, the raw copy trains
+_UPDATES_KEY = "num_updates"  # the EMA's update counter: a fresh run starts at 0
 
 
 def learned_prior_state(policy: PacdpPolicy, source: dict) -> dict:
@@ -62,14 +67,17 @@ def learned_prior_state(policy: PacdpPolicy, source: dict) -> dict:
 
     A DP checkpoint's `...weight` / `...bias` have the names of PAC-DP's mu; a PAC-DP/BDP source contributes
     its mu (its own rho and prior are dropped). Every other tensor (GroupNorm, FiLM projections,
-    observation encoders) is copied as is.
+    observation encoders) is copied as is. The source's acting network (its EMA, if it has one) is what
+    both copies of an EMA policy start from.
     """
     source = {key.replace(_COMPILED_PREFIX, ""): value for key, value in source.items()}
+    source = {k: v for k, v in source.items() if not k.startswith(_RAW_PREFIX) and k != _UPDATES_KEY}
     state, used, problems = policy.state_dict(), set(), []
     for key, value in state.items():
-        if key.endswith(_KEPT_SUFFIXES):
+        if key.endswith(_KEPT_SUFFIXES) or key == _UPDATES_KEY:
             continue
-        source_key = key.removesuffix(_PRIOR_MU_SUFFIX)
+        source_key = _ACTING_PREFIX + key.removeprefix(_RAW_PREFIX) if key.startswith(_RAW_PREFIX) else key
+        source_key = source_key.removesuffix(_PRIOR_MU_SUFFIX)
         if source_key not in source:
             problems.append(f"{source_key} missing")
         elif source[source_key].shape != value.shape:
@@ -95,12 +103,15 @@ def build_learned_prior(
     kl_weight: float | None = None,
     delta: float | None = None,
     bayesian_conditioning: bool | None = None,
+    freeze_deterministic: bool = True,
 ) -> Path:
     """Save a PAC-DP checkpoint whose prior and initial posterior means are `source`'s weights.
 
     The architecture, features, normalisation and diffusion settings are the source's; the PAC-Bayes
     fields are the source's (PAC-DP/BDP) or PacdpConfig's defaults (DP), unless overridden. N is left
-    unset so that lerobot-train derives it from the split the prior is fine-tuned on.
+    unset so that lerobot-train derives it from the split the prior is fine-tuned on. With
+    `freeze_deterministic` (default) fine-tuning keeps the source's deterministic tensors, which
+    `pacdp-certify --prior` requires.
     """
     source_dir = resolve_pretrained_dir(source)
     source_type = checkpoint_policy_type(source_dir)
@@ -109,7 +120,8 @@ def build_learned_prior(
         raise MetricsError(f"{output_dir} exists and is not empty; choose a new --output_dir.")
     source_config = PreTrainedConfig.from_pretrained(source_dir)
     values = {f.name: getattr(source_config, f.name) for f in fields(source_config) if f.init}
-    values.update(compile_model=False, num_train_samples=None, device="cpu", pretrained_path=None)
+    values.update(compile_model=False, num_train_samples=None, device="cpu", pretrained_path=None, bayesian=True)
+    values.update(freeze_deterministic=freeze_deterministic)
     overrides = dict(prior_rho=prior_rho, kl_weight=kl_weight, delta=delta, bayesian_conditioning=bayesian_conditioning)
     values.update({k: v for k, v in overrides.items() if v is not None})
     config = PacdpConfig(**{f.name: values[f.name] for f in fields(PacdpConfig) if f.init and f.name in values})
@@ -170,6 +182,8 @@ class LearnedPriorConfig:
     kl_weight: float | None = None
     delta: float | None = None
     bayesian_conditioning: bool | None = None
+    # Keep the source's deterministic tensors fixed while fine-tuning (needed by pacdp-certify --prior).
+    freeze_deterministic: bool = True
 
 
 def _main(argv: Sequence[str] | None) -> int:
@@ -183,6 +197,7 @@ def _main(argv: Sequence[str] | None) -> int:
         kl_weight=cfg.kl_weight,
         delta=cfg.delta,
         bayesian_conditioning=cfg.bayesian_conditioning,
+        freeze_deterministic=cfg.freeze_deterministic,
     )
     print(f"Wrote the PAC-DP prior checkpoint {out}. Fine-tune it on the disjoint split with:")
     print(f"  lerobot-train --policy.path={out} --dataset.episodes='[<split B>]' ...")

@@ -18,8 +18,8 @@ from torch import Tensor
 Denoiser = Callable[[Tensor, Tensor], Tensor]
 
 # Independent random streams: per example, the NPE / certificate draw and the NLL-bound draws; per
-# certificate weight sample, the network draw.
-NPE_STREAM, NLL_STREAM, WEIGHT_STREAM = 0, 1, 2
+# certificate weight sample, the network draw and the choice of one window per demonstration.
+NPE_STREAM, NLL_STREAM, WEIGHT_STREAM, WINDOW_STREAM = 0, 1, 2, 3
 
 
 def example_generator(seed: int, index: int, stream: int, device: str | torch.device = "cpu") -> torch.Generator:
@@ -65,32 +65,80 @@ def policy_denoiser(policy: DiffusionPolicy, global_cond: Tensor) -> Denoiser:
     return denoise
 
 
+def masked_errors(prediction: Tensor, noise: Tensor, valid: Tensor) -> Tensor:
+    """Per-example ||eps - eps_hat||^2 averaged over the real (unpadded) entries of the chunk, (B,) float64."""
+    squared = (prediction - noise).square().double() * valid.unsqueeze(-1)
+    return squared.sum(dim=(1, 2)) / (valid.sum(dim=1) * noise.shape[-1]).clamp_min(1)
+
+
 @torch.no_grad()
 def noise_prediction_errors(
     denoiser: Denoiser, actions: Tensor, valid: Tensor, indices: Tensor, alpha_bar: Tensor, seed: int
 ) -> Tensor:
-    """Per-example ||eps - eps_hat||^2 averaged over the real (unpadded) entries of the chunk, (B,) float64.
+    """The integrand of paper Eq. 2 at each example's own seeded (t, eps): `masked_errors`, (B,) float64.
 
-    The integrand of paper Eq. 2 at the example's own (t, eps). Padding is masked as in training; every
-    checkpoint type is masked alike so that DP and PAC-DP numbers compare.
+    Padding is masked as in training; every checkpoint type is masked alike so that DP and PAC-DP
+    numbers compare.
     """
     steps, noise = npe_draws(indices, seed, len(alpha_bar), tuple(actions.shape[1:]))
     steps, noise = steps.to(actions.device), noise.to(actions.device, actions.dtype)
     noisy = diffuse(actions, noise, alpha_bar.to(actions.device, actions.dtype)[steps])
-    squared = (denoiser(noisy, steps) - noise).square().double() * valid.unsqueeze(-1)
-    return squared.sum(dim=(1, 2)) / (valid.sum(dim=1) * actions.shape[-1]).clamp_min(1)
+    return masked_errors(denoiser(noisy, steps), noise, valid)
 
 
 @dataclass(frozen=True)
 class MeanWithError:
-    """A Monte Carlo mean over independent examples and its standard error."""
+    """A mean and its standard error; `clusters` is the number of independent groups the error assumes."""
 
     mean: float
     sem: float
     n: int
+    clusters: int
 
     @classmethod
     def of(cls, values: Tensor) -> "MeanWithError":
+        """The standard error of independent values."""
         n = values.numel()
         sem = values.double().std().item() / math.sqrt(n) if n > 1 else math.nan
-        return cls(values.double().mean().item(), sem, n)
+        return cls(values.double().mean().item(), sem, n, n)
+
+
+@dataclass(frozen=True)
+class EpisodeSums:
+    """Per-episode sums of per-window values: enough for a mean, its episode-clustered error and paired
+    differences between checkpoints evaluated on the same windows and draws.
+
+    The overlapping windows of one episode are correlated, so the error treats episodes, not windows, as
+    the independent units (the cluster-robust variance, with the G / (G - 1) small-sample factor):
+        var(mean) = G / (G - 1) * sum_g (S_g - n_g * mean)^2 / n^2.
+    """
+
+    episodes: tuple[int, ...]
+    sums: tuple[float, ...]
+    counts: tuple[int, ...]
+
+    @classmethod
+    def of(cls, values: Tensor, episodes: Tensor) -> "EpisodeSums":
+        unique, inverse = torch.unique(episodes, return_inverse=True)
+        sums = torch.zeros(len(unique), dtype=torch.float64).index_add_(0, inverse, values.double())
+        counts = torch.bincount(inverse, minlength=len(unique))
+        return cls(tuple(unique.tolist()), tuple(sums.tolist()), tuple(counts.tolist()))
+
+    def mean_with_error(self) -> MeanWithError:
+        sums, counts = torch.tensor(self.sums, dtype=torch.float64), torch.tensor(self.counts, dtype=torch.float64)
+        n, groups = int(counts.sum().item()), len(self.sums)
+        mean = sums.sum().item() / n
+        if groups < 2:
+            return MeanWithError(mean, math.nan, n, groups)
+        residuals = sums - counts * mean
+        sem = math.sqrt(groups / (groups - 1) * residuals.square().sum().item()) / n
+        return MeanWithError(mean, sem, n, groups)
+
+    def minus(self, other: "EpisodeSums") -> "EpisodeSums":
+        """Per-episode sums of the paired differences (this - other) on the same windows."""
+        if self.episodes != other.episodes or self.counts != other.counts:
+            raise ValueError(
+                "paired differences need both checkpoints evaluated on the same windows: their episodes or "
+                "window counts differ (evaluate them in one pacdp-metrics run, with the same --episodes)."
+            )
+        return EpisodeSums(self.episodes, tuple(a - b for a, b in zip(self.sums, other.sums, strict=True)), self.counts)

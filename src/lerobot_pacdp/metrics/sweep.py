@@ -2,8 +2,8 @@
 
 Writes one row per run x checkpoint step (`metrics.csv`, `metrics.json`), plots of each metric against
 the training step with one curve per method and a mean +- std band over its runs/seeds (paper Fig. 3:
-`npe.png`, `nll_bound.png`, `kl.png`, `success_rate.png`, all panels in `training_dynamics.png`; `kl` is
-KL(Q||P) of pacdp checkpoints, empty for DP), and the paper's
+`npe.png`, `nll_bound.png`, `nll_paper_compatible_bits.png`, `kl.png`, `success_rate.png`, all panels in
+`training_dynamics.png`; `kl` is KL(Q||P) of pacdp checkpoints, empty for DP), and the paper's
 summary statistic (`summary.json`, printed): per run the mean over its last 10 checkpoints, then mean +-
 std (sample std, ddof=1) over the runs of a method.
 
@@ -13,6 +13,15 @@ Held-out episodes default to each run's own `--dataset.eval_split` episodes (fro
 methods default to DP / BDP (pacdp with kl_weight 0) / PAC-DP, or pass `--labels` (one per run).
 Every checkpoint is evaluated on the same per-example draws (`--seed`), so curves differ by the
 models only. Rows already in `metrics.json` with the same settings are reused (`--resume=false` recomputes).
+
+Columns beyond the metrics: `npe_sem` is the NPE's standard error clustered by episode (overlapping
+windows of one episode are not independent; `npe_sem_iid` treats them as if they were, `npe_clusters`
+counts the episodes); the JSON rows keep the per-episode NPE sums, from which
+`lerobot_pacdp.metrics.comparison.paired_npe_difference` gives the paired difference of two checkpoints.
+The NLL bound is in nats/dim (`nll_bound`, `nll_baseline`) and bits/dim (`*_bits`);
+`nll_paper_compatible_bits` is the paper-compatible estimate, NOT a bound (see `nll_bound`; only with every
+diffusion step evaluated); `heldout_error_step0` is the held-out denoising error per dimension at diffusion
+step 0 (the largest log-SNR), and the JSON rows keep it for every evaluated step (`heldout_error_per_step`).
 """
 
 import csv
@@ -35,8 +44,9 @@ from lerobot_pacdp.atomic_io import write_text_atomic
 from lerobot_pacdp.bayesian_layers import exact_kl
 from lerobot_pacdp.metrics.checkpoints import LoadedPolicy, MetricsError, list_checkpoints, load_policy, run_cli
 from lerobot_pacdp.metrics.data import DatasetArgs, EvaluationData, resolve_split
-from lerobot_pacdp.metrics.nll_bound import NllAccumulator, NllBound, nll_step_errors
+from lerobot_pacdp.metrics.nll_bound import NATS_PER_BIT, NllAccumulator, NllBound, nll_step_errors
 from lerobot_pacdp.metrics.noise_prediction import (
+    EpisodeSums,
     MeanWithError,
     alphas_cumprod,
     noise_prediction_errors,
@@ -48,19 +58,32 @@ logger = logging.getLogger(__name__)
 METRICS = {  # column -> axis label
     "npe": "noise prediction error",
     "nll_bound": "NLL bound (nats / dim)",
+    "nll_paper_compatible_bits": "paper-compatible NLL, not a bound (bits / dim)",
     "kl": "KL(Q||P) (nats)",  # pacdp only: how far the posterior moved from the prior (Eq. 9's complexity)
     "success_rate": "success rate",
 }
+# Summarised like the plotted metrics; the bound in bits is the nats plot's right axis, not a plot of its own.
+SUMMARY_METRICS = {**METRICS, "nll_bound_bits": "NLL bound (bits / dim)"}
 CSV_COLUMNS = [
     "label", "run", "step", "checkpoint", "policy_type", "npe", "npe_sem", "npe_examples",
     "nll_bound", "nll_baseline", "nll_examples", "kl", "success_rate",
+    "npe_sem_iid", "npe_clusters", "nll_bound_bits", "nll_baseline_bits", "nll_paper_compatible_bits",
+    "heldout_error_step0",
 ]  # fmt: skip
+# Bump when the rows change meaning: stored rows of another version are recomputed, not reused.
+ROWS_VERSION = 2
 
 
 @dataclass(frozen=True)
 class CheckpointMetrics:
-    npe: MeanWithError
+    npe_sums: EpisodeSums  # per-episode sums of the per-window NPE
+    npe_iid: MeanWithError  # the NPE with the (optimistic) standard error of independent windows
     nll: NllBound | None
+
+    @property
+    def npe(self) -> MeanWithError:
+        """The NPE with its standard error clustered by episode."""
+        return self.npe_sums.mean_with_error()
 
 
 def evenly_spaced_steps(num_timesteps: int, count: int | None) -> list[int]:
@@ -91,25 +114,29 @@ def evaluate_checkpoint(
     alpha_bar = alphas_cumprod(policy)
     steps = list(range(len(alpha_bar))) if nll_steps is None else list(nll_steps)
     accumulator = NllAccumulator(alpha_bar, steps, seed) if nll else None
-    npe_errors = []
+    npe_errors, episodes = [], []
     for batch in data.batches(loaded, batch_size, desc=desc):
         denoiser = policy_denoiser(policy, batch.global_cond)
         npe_errors.append(
             noise_prediction_errors(denoiser, batch.actions, batch.valid, batch.index, alpha_bar, seed).cpu()
         )
+        episodes.append(batch.episode.cpu())
         complete = batch.valid.all(dim=1)
         if accumulator is not None and complete.any():
             actions, index = batch.actions[complete], batch.index[complete]
             complete_denoiser = policy_denoiser(policy, batch.global_cond[complete])
             accumulator.add(nll_step_errors(complete_denoiser, actions, index, alpha_bar, steps, seed), actions, index)
+    errors = torch.cat(npe_errors)
     return CheckpointMetrics(
-        MeanWithError.of(torch.cat(npe_errors)), accumulator.result() if accumulator is not None else None
+        EpisodeSums.of(errors, torch.cat(episodes)),
+        MeanWithError.of(errors),
+        accumulator.result() if accumulator is not None else None,
     )
 
 
 def method_label(loaded: LoadedPolicy) -> str:
     config = loaded.policy.config
-    if loaded.policy_type == "diffusion":
+    if loaded.policy_type == "diffusion" or not getattr(config, "bayesian", True):
         return "DP"
     return "BDP" if config.kl_weight == 0 else "PAC-DP"
 
@@ -153,7 +180,7 @@ def summarize(rows: list[dict], last_k: int = 10) -> dict:
     summary = {}
     for label, runs in by_label_run.items():
         summary[label] = {"runs": len(runs)}
-        for metric in METRICS:
+        for metric in SUMMARY_METRICS:
             per_run = []
             for run_rows in runs.values():
                 values = _finite([r.get(metric) for r in sorted(run_rows, key=lambda r: r["step"])])[-last_k:]
@@ -168,7 +195,7 @@ def summarize(rows: list[dict], last_k: int = 10) -> dict:
 def format_summary(summary: dict, last_k: int) -> str:
     lines = [f"mean over the last {last_k} checkpoints, mean +- std over runs:"]
     for label, entry in summary.items():
-        parts = [f"{name} {entry[m]['mean']:.4f} +- {entry[m]['std']:.4f}" for m, name in METRICS.items() if m in entry]
+        parts = [f"{name} {entry[m]['mean']:.4f} +- {entry[m]['std']:.4f}" for m, name in SUMMARY_METRICS.items() if m in entry]
         lines.append(f"  {label} ({entry['runs']} runs): " + "  |  ".join(parts))
     return "\n".join(lines)
 
@@ -196,8 +223,11 @@ def plot_metrics(rows: list[dict], output_dir: Path) -> list[Path]:
                 steps, [m - s for m, s in stats], [m + s for m, s in stats], color=colors[label], alpha=0.2
             )
         baselines = _finite([row["nll_baseline"] for row in rows]) if metric == "nll_bound" else []
-        if baselines:  # what a denoiser no better than the Gaussian gets (the paper's -3.24 plateau on PushT)
+        if baselines:  # what a denoiser no better than the Gaussian gets
             ax.axhline(sum(baselines) / len(baselines), color="gray", linestyle="--", label="Gaussian baseline $h_G/d$")
+        if metric == "nll_bound":
+            bits = ax.secondary_yaxis("right", functions=(lambda n: n / NATS_PER_BIT, lambda b: b * NATS_PER_BIT))
+            bits.set_ylabel("bits / dim")
         if metric == "kl" and all(v > 0 for r in rows if (v := r.get("kl")) is not None):
             ax.set_yscale("log")  # BDP's KL grows by orders of magnitude over PAC-DP's
         ax.set_xlabel("training step")
@@ -252,7 +282,7 @@ def _settings(cfg: SweepConfig) -> dict:
     """What a stored row depends on besides the checkpoint: rows are reused only if these match."""
     keys = ("episodes", "seed", "nll", "nll_steps", "frame_stride", "eval_episodes")
     settings = {k: getattr(cfg, k) for k in keys}
-    settings.update(dataset=str(cfg.dataset), env=None if cfg.env is None else repr(cfg.env))
+    settings.update(dataset=str(cfg.dataset), env=None if cfg.env is None else repr(cfg.env), rows_version=ROWS_VERSION)
     return settings
 
 
@@ -287,7 +317,6 @@ def run_sweep(cfg: SweepConfig) -> tuple[list[dict], dict]:
     if len(labels) != len(runs):
         raise MetricsError(f"--labels has {len(labels)} entries for {len(runs)} runs; give one label per run.")
     checkpoints = {run: list_checkpoints(run) for run in runs}  # fail before any work on a bad run dir
-    cfg.output_dir.mkdir(parents=True, exist_ok=True)
     settings = _settings(cfg)
     stored = {}
     previous_file = cfg.output_dir / "metrics.json"
@@ -318,25 +347,9 @@ def run_sweep(cfg: SweepConfig) -> tuple[list[dict], dict]:
                 result = evaluate_checkpoint(
                     loaded, data, cfg.seed, cfg.batch_size, cfg.nll, nll_steps, desc=f"step {step}"
                 )
-                rows.append(
-                    {
-                        "label": label or method_label(loaded),
-                        "run": str(run),
-                        "step": step,
-                        "checkpoint": str(ckpt),
-                        "policy_type": loaded.policy_type,
-                        "npe": result.npe.mean,
-                        "npe_sem": result.npe.sem,
-                        "npe_examples": result.npe.n,
-                        "nll_bound": result.nll.nats_per_dim if result.nll else None,
-                        "nll_baseline": result.nll.baseline_nats_per_dim if result.nll else None,
-                        "nll_examples": result.nll.num_examples if result.nll else None,
-                        "kl": exact_kl(loaded.policy.unet) if loaded.policy_type == "pacdp" else None,
-                        "success_rate": success_rate(loaded, envs, cfg.env, cfg.eval_episodes, cfg.seed)
-                        if envs
-                        else None,
-                    }
-                )
+                row = checkpoint_row(result, label or method_label(loaded), run, step, loaded)
+                row["success_rate"] = success_rate(loaded, envs, cfg.env, cfg.eval_episodes, cfg.seed) if envs else None
+                rows.append(row)
                 _write_tables(rows, settings, cfg.output_dir)
     finally:
         if envs is not None:
@@ -350,6 +363,37 @@ def run_sweep(cfg: SweepConfig) -> tuple[list[dict], dict]:
     write_text_atomic(cfg.output_dir / "summary.json", json.dumps({"last_k": cfg.last_k, "methods": summary}, indent=2))
     plot_metrics(rows, cfg.output_dir)
     return rows, summary
+
+
+def checkpoint_row(result: CheckpointMetrics, label: str, run: Path, step: int, loaded: LoadedPolicy) -> dict:
+    """One metrics.json row (CSV_COLUMNS plus the per-episode and per-step lists), success rate left unset."""
+    nll, sums = result.nll, result.npe_sums
+    paper = nll.paper_compatible if nll else None
+    return {
+        "label": label,
+        "run": str(run),
+        "step": step,
+        "checkpoint": str(loaded.path),
+        "policy_type": loaded.policy_type,
+        "npe": result.npe.mean,
+        "npe_sem": result.npe.sem,
+        "npe_examples": result.npe.n,
+        "npe_sem_iid": result.npe_iid.sem,
+        "npe_clusters": result.npe.clusters,
+        "npe_episodes": list(sums.episodes),
+        "npe_episode_sums": list(sums.sums),
+        "npe_episode_counts": list(sums.counts),
+        "nll_bound": nll.nats_per_dim if nll else None,
+        "nll_baseline": nll.baseline_nats_per_dim if nll else None,
+        "nll_bound_bits": nll.bits_per_dim if nll else None,
+        "nll_baseline_bits": nll.baseline_bits_per_dim if nll else None,
+        "nll_paper_compatible_bits": paper.bits_per_dim if paper else None,  # NOT a bound
+        "nll_examples": nll.num_examples if nll else None,
+        "nll_steps": nll.steps if nll else None,
+        "heldout_error_per_step": nll.error_per_step if nll else None,
+        "heldout_error_step0": nll.error_per_step[nll.steps.index(0)] if nll and 0 in nll.steps else None,
+        "kl": exact_kl(loaded.policy.unet) if loaded.policy_type == "pacdp" and loaded.policy.config.bayesian else None,
+    }
 
 
 def _write_tables(rows: list[dict], settings: dict, output_dir: Path) -> None:

@@ -1,0 +1,70 @@
+"""`bayesian=false`: the DP baseline that differs from PAC-DP only in what the paper changes."""
+
+import math
+
+import pytest
+import torch
+from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+
+from lerobot_pacdp.bayesian_layers import BayesianLayer
+from lerobot_pacdp.modeling_pacdp import NonFiniteTrainingError, PacdpPolicy
+
+from pacdp_testing import random_batch, tiny_config
+
+
+def test_one_training_step_equals_lerobots_diffusion_with_the_equivalent_config_and_seed():
+    config = tiny_config(bayesian=False, use_ema=False)
+    torch.manual_seed(0)
+    twin = PacdpPolicy(config)
+    torch.manual_seed(0)
+    plain = DiffusionPolicy(config.diffusion_twin())
+    assert not any(isinstance(m, BayesianLayer) for m in twin.modules())
+    assert twin.state_dict().keys() - {"num_updates"} == plain.state_dict().keys()
+    batch = random_batch(config)
+    losses, grads = [], []
+    for policy in (twin, plain):
+        policy.train()
+        torch.manual_seed(5)  # the same diffusion noise and timesteps
+        loss, _ = policy.forward(batch)
+        loss.backward()
+        losses.append(loss.item())
+        grads.append({n: p.grad for n, p in policy.named_parameters()})
+    assert losses[0] == losses[1]
+    assert grads[0].keys() == grads[1].keys()
+    assert all(torch.equal(grads[0][n], grads[1][n]) for n in grads[0])
+    params = [dict(policy.named_parameters()) for policy in (twin, plain)]
+    groups = twin.get_optim_params()
+    assert [id(p) for p in groups[0]["params"]] == [id(p) for p in params[0].values()]
+
+
+def test_the_twin_logs_its_denoising_loss_and_trains_with_ema_by_default():
+    policy = PacdpPolicy(tiny_config(bayesian=False))
+    policy.train()
+    loss, logs = policy.forward(random_batch(policy.config))
+    assert logs == {"denoise_loss": pytest.approx(loss.item())}
+    assert policy.raw_diffusion is not None
+
+
+def test_sample_mode_without_a_posterior_is_refused():
+    with pytest.raises(ValueError, match="inference_mode='sample'.*bayesian=False"):
+        tiny_config(bayesian=False, inference_mode="sample")
+
+
+@pytest.mark.parametrize("bayesian", [True, False])
+def test_a_non_finite_loss_stops_training_naming_the_step_and_the_term(bayesian):
+    policy = PacdpPolicy(tiny_config(bayesian=bayesian))
+    policy.train()
+    batch = random_batch(policy.config)
+    batch["action"][1, 3, 0] = math.nan
+    with pytest.raises(NonFiniteTrainingError, match=r"training step 1: denoise_loss = nan.*non-finite: denoise_loss"):
+        policy.forward(batch)
+
+
+def test_weights_made_non_finite_by_an_optimizer_step_stop_training_before_the_ema_takes_them():
+    policy = PacdpPolicy(tiny_config())
+    with torch.no_grad():
+        policy.trained_diffusion.unet.final_conv[1].weight[0, 0, 0] = math.inf
+    acting_before = policy.diffusion.unet.final_conv[1].weight.clone()
+    with pytest.raises(NonFiniteTrainingError, match="optimizer step 1 made the trained weights non-finite"):
+        policy.update()
+    assert torch.equal(policy.diffusion.unet.final_conv[1].weight, acting_before)
