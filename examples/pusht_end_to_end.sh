@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# PushT with PAC-DP, end to end: convert the demos, train with lerobot-train, roll out with lerobot-eval.
+# PushT with PAC-DP, end to end: convert the demos, train with lerobot-train, roll out with lerobot-eval,
+# summarize (success rate with its 95% interval, held-out NPE).
 #
 #   bash examples/pusht_end_to_end.sh SOURCE [OUTPUT_DIR]
 #
@@ -7,16 +8,17 @@
 # human demos; converted locally, fully offline) or a hub dataset id laid out like
 # lerobot/pusht_keypoints (downloaded by LeRobot; needs the hub).
 # Sizes come from configs/pusht/pacdp_cpu.json (a small U-Net for CPUs); override any field on the
-# command line (STEPS=..., EPISODES=..., or edit the lerobot-train line). Paper scale: configs/pusht/pacdp_paper.json.
+# command line (STEPS=..., EPISODES=..., EVAL_EPISODES=..., or edit the lerobot-train line).
+# Paper scale: configs/pusht/pacdp_paper.json.
 set -euo pipefail
+cd "$(dirname "$0")/.."
 source="${1:?usage: $0 PATH/TO/pusht_cchi_v7_replay.zarr|lerobot/pusht_keypoints [OUTPUT_DIR]}"
 out="${2:-outputs/pusht_pacdp}"
-steps="${STEPS:-2000}"
 episodes="${EPISODES:-0-39}"
-eval_episodes="${EVAL_EPISODES:-10}"
-bin="$(dirname "$0")/../.venv/bin"
+bin=.venv/bin
 [ -x "$bin/lerobot-train" ] || bin="$(dirname "$(command -v lerobot-train)")"
 
+start=$SECONDS
 if [ -e "$source" ]; then
   export HF_HUB_OFFLINE=1
   echo "== 1/3 converting PushT demos $episodes from $source"
@@ -28,16 +30,11 @@ else
   dataset=(--dataset.repo_id="$source" --dataset.episodes="$episode_list")
 fi
 
-echo "== 2/3 training PAC-DP for $steps steps (10% of the demos held out for the NPE)"
+echo "== 2/3 training PAC-DP with lerobot-train (configs/pusht/pacdp_cpu.json${STEPS:+, $STEPS steps}; 10% of the demos held out)"
 rm -rf "$out/train"
-"$bin/lerobot-train" --config_path=configs/pusht/pacdp_cpu.json \
-  "${dataset[@]}" \
-  --steps="$steps" --output_dir="$out/train" --wandb.enable=false
+"$bin/lerobot-train" --config_path=configs/pusht/pacdp_cpu.json "${dataset[@]}" ${STEPS:+--steps="$STEPS"} \
+  --output_dir="$out/train" --wandb.enable=false
 
-echo "== 3/3 rolling out the last checkpoint in gym-pusht ($eval_episodes episodes)"
-rm -rf "$out/eval"
-"$bin/lerobot-eval" --policy.path="$out/train/checkpoints/last/pretrained_model" \
-  --env.type=pusht --env.obs_type=environment_state_agent_pos \
-  --eval.n_episodes="$eval_episodes" --eval.batch_size=5 --eval.use_async_envs=false \
-  --output_dir="$out/eval"
-"$bin/python" -c "import json, sys; o = json.load(open(sys.argv[1]))['overall']; print(f'success rate: {o[\"pc_success\"]:.1f}% over {o[\"n_episodes\"]} episodes')" "$out/eval/eval_info.json"
+echo "== 3/3 evaluating the last checkpoint in gym-pusht"
+bash examples/evaluate_and_summarize.sh "$out/train/checkpoints/last/pretrained_model" "$out" pusht "$start" -- \
+  --env.type=pusht --env.obs_type=environment_state_agent_pos

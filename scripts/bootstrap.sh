@@ -16,6 +16,24 @@ if [ ! -x .venv/bin/python ]; then
   "$python_bin" -m venv .venv
 fi
 
+# System libraries, where this user may install them (root with apt): OSMesa renders rollout videos on a
+# CPU machine; FFmpeg's libraries let torchcodec load (else LeRobot prints a long traceback at start-up).
+system_libs=(libosmesa6 libavutil57 libavcodec59 libavformat59 libavdevice59 libavfilter8 libswscale6 libswresample4)
+if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null && command -v dpkg-query >/dev/null; then
+  missing=()
+  for lib in "${system_libs[@]}"; do
+    dpkg-query -W -f='${Status}' "$lib" 2>/dev/null | grep -q "install ok installed" || missing+=("$lib")
+  done
+  if [ ${#missing[@]} -gt 0 ]; then
+    echo "[bootstrap] installing ${missing[*]} (offscreen rendering, video decoding)"
+    if ! DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends "${missing[@]}" >/dev/null 2>&1; then
+      DEBIAN_FRONTEND=noninteractive apt-get update -q >/dev/null 2>&1 || true
+      DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends "${missing[@]}" >/dev/null 2>&1 \
+        || echo "[bootstrap] note: could not install ${missing[*]}; rollout videos will be blank (see README)"
+    fi
+  fi
+fi
+
 stamp=.venv/.pacdp-install-stamp
 want=$(sha256sum pyproject.toml | cut -d' ' -f1)
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then

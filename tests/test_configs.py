@@ -29,3 +29,10 @@ def test_pusht_paper_config_holds_the_paper_settings():
     assert config.policy.kl_weight == 1e-4 and config.policy.down_dims == (256, 512, 1024)
     assert config.dataset.episodes == list(range(200)) and config.dataset.eval_split == 0.3  # 140 / 60 demos
     assert config.steps == 1_000_000 and config.save_freq == 5000
+
+
+@pytest.mark.parametrize("path", [p for p in CONFIGS if "cpu" not in p.stem], ids=lambda p: p.stem)
+def test_paper_configs_train_on_copy_padded_actions_as_chis_code_does(path):
+    config = draccus.parse(config_class=TrainPipelineConfig, config_path=path, args=[])
+    assert config.policy.do_mask_loss_for_padding is False and config.policy.use_ema
+    assert config.policy.noise_scheduler_type == "DDIM" and config.policy.num_inference_steps == 10

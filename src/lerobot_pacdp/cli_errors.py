@@ -71,7 +71,8 @@ def run_draccus_cli(prog: str, config_class: type[T], body: Callable[[T], int], 
 
 # ----------------------------------------------------------------------------------------------------------
 # LeRobot's CLIs
-def _raised_in_this_package(exc: BaseException) -> bool:
+def raised_in_this_package(exc: BaseException) -> bool:
+    """True if `exc` was raised in (or passed through) this package's code."""
     tb = exc.__traceback__
     while tb is not None:
         if tb.tb_frame.f_globals.get("__name__", "").startswith(f"{_PACKAGE}."):
@@ -88,7 +89,7 @@ def plugin_config_error(exc: BaseException) -> Exception | None:
     cause = exc.__cause__
     while cause is not None:
         if isinstance(cause, (ValueError, TypeError)) and not isinstance(cause, DraccusException):
-            return cause if _raised_in_this_package(cause) else None
+            return cause if raised_in_this_package(cause) else None
         cause = cause.__cause__
     return None
 

@@ -13,6 +13,7 @@ datasets) so that, before the policy is made:
    unless asked.
 """
 
+import functools
 import logging
 import os
 import sys
@@ -40,11 +41,32 @@ def in_memory_data_wanted(policy_type: str | None) -> bool:
     return policy_type == "pacdp"
 
 
+def check_observations(features: dict) -> None:
+    """What LeRobot's diffusion policy needs of a dataset, said before it fails deep inside `make_policy`."""
+    from lerobot_pacdp.cli_errors import UserInputError
+
+    if "observation.state" not in features:
+        raise UserInputError(
+            f"the dataset has no `observation.state` (it has {sorted(features)}); pacdp, like LeRobot's "
+            "diffusion policy, conditions on the robot state: convert the data with pacdp-convert-pusht or "
+            "pacdp-convert-robomimic, or rename the state feature with --rename_map."
+        )
+    if "observation.environment_state" not in features and not any(
+        f.get("dtype") in ("image", "video") for f in features.values()
+    ):
+        raise UserInputError(
+            "the dataset has `observation.state` but neither `observation.environment_state` nor a camera; "
+            "pacdp needs one of them (state-based: the object/keypoint vector as observation.environment_state)."
+        )
+
+
 def prepare_training_datasets(cfg: Any, train: Any, eval_: Any) -> tuple[Any, Any]:
     """Set N for a pacdp policy and serve state-only datasets from memory (see the module docstring)."""
     from lerobot_pacdp.training_set import training_windows
 
     policy_cfg = getattr(cfg, "policy", None)
+    if isinstance(policy_cfg, PacdpConfig):
+        check_observations(train.meta.features)
     if isinstance(policy_cfg, PacdpConfig) and policy_cfg.num_train_samples is None:
         size = training_windows(train, policy_cfg.drop_n_last_frames)
         policy_cfg.num_train_samples = size.num_windows
@@ -106,13 +128,40 @@ def _wrap(make_train_eval_datasets: Callable) -> Callable:
     return make_train_eval_datasets_for_pacdp
 
 
+def _one_line_errors(train: Callable) -> Callable:
+    """`train` with this plugin's own stops (bad input, a non-finite step, a config value it refuses after
+    parsing, e.g. `--policy.path=X --policy.kl_weight=-1`) printed as one `lerobot-train: error:` line and
+    exit status 2, instead of a traceback through LeRobot."""
+    from lerobot_pacdp.cli_errors import EXIT_USER_ERROR, UserInputError, plugin_config_error, raised_in_this_package
+    from lerobot_pacdp.modeling_pacdp import NonFiniteTrainingError
+
+    @functools.wraps(train)
+    def train_naming_plugin_errors(*args, **kwargs):
+        try:
+            return train(*args, **kwargs)
+        except Exception as exc:
+            ours = isinstance(exc, UserInputError | NonFiniteTrainingError)
+            ours = ours or (isinstance(exc, ValueError) and raised_in_this_package(exc))
+            message = exc if ours else plugin_config_error(exc)  # a config value refused while LeRobot parses
+            if message is None:
+                raise
+        print(f"lerobot-train: error: {message}", file=sys.stderr)
+        raise SystemExit(EXIT_USER_ERROR)
+
+    setattr(train_naming_plugin_errors, _HOOK_MARK, True)
+    return train_naming_plugin_errors
+
+
 def install(module: ModuleType) -> None:
-    """Wrap `module.make_train_eval_datasets` (LeRobot's training script module); idempotent."""
+    """Wrap LeRobot's training script module (`lerobot.scripts.lerobot_train`); idempotent."""
     current = getattr(module, "make_train_eval_datasets", None)
     if current is not None and not getattr(current, _HOOK_MARK, False):
         module.make_train_eval_datasets = _wrap(current)
     if hasattr(module, "cycle"):
         module.cycle = resumable_cycle
+    train = getattr(module, "train", None)
+    if train is not None and not getattr(train, _HOOK_MARK, False):
+        module.train = _one_line_errors(train)
 
 
 def install_into_running_lerobot_train() -> None:

@@ -38,17 +38,22 @@ def test_train_and_evaluate_on_scripted_lift_demos(tmp_path, scripted_lift_datas
     train_config = json.loads((model / "train_config.json").read_text())
     assert train_config["env"]["type"] == "robomimic" and train_config["env"]["task"] == "lift"
 
-    eval_dir = tmp_path / "eval"
-    _run(
-        [
-            str(BIN / "lerobot-eval"),
-            f"--policy.path={model}",
-            "--policy.device=cpu",
-            "--env.type=robomimic", "--env.task=lift", "--env.episode_length=6",
-            "--eval.n_episodes=2", "--eval.batch_size=2", "--eval.use_async_envs=false",
-            f"--output_dir={eval_dir}",
-        ],
-        tmp_path,
+    # The main job's last stage: lerobot-eval, pacdp-metrics (held-out NPE), pacdp-summarize-run.
+    script = Path(__file__).parents[2] / "examples" / "evaluate_and_summarize.sh"
+    env_flags = ["--env.type=robomimic", "--env.task=lift", "--env.episode_length=6", "--policy.device=cpu"]
+    result = subprocess.run(
+        ["bash", str(script), str(model), str(tmp_path), "lift", "0", "--", *env_flags],
+        env={**os.environ, "HF_HUB_OFFLINE": "1", "EVAL_EPISODES": "3", "EVAL_BATCH": "3", "PATH": f"{BIN}:{os.environ['PATH']}"},
+        capture_output=True, text=True, timeout=900,
     )
-    info = json.loads((eval_dir / "eval_info.json").read_text())
-    assert info["overall"]["n_episodes"] == 2 and 0.0 <= info["overall"]["pc_success"] <= 100.0
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    info = json.loads((tmp_path / "eval" / "eval_info.json").read_text())
+    assert info["overall"]["n_episodes"] == 3
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    successes = sum(bool(s) for task in info["per_task"] for s in task["metrics"]["successes"])
+    assert summary["task"] == "lift" and summary["n_episodes"] == 3 and summary["train_steps"] == 2
+    assert summary["success_rate"] == successes / 3 and summary["successes"] == successes
+    low, high = summary["ci95"]
+    assert 0.0 <= low <= summary["success_rate"] <= high <= 1.0
+    assert summary["policy"].startswith("pacdp PAC-DP (kl_weight=1e-05") and summary["heldout_npe"] > 0
+    assert summary["wall_time_s"] >= 0 and "success rate:" in result.stdout

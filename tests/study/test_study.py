@@ -82,26 +82,28 @@ def test_bad_inputs_fail_clearly():
         with_overrides(get_preset("cpu"), seeds=[0, 0])
 
 
-def test_dp_config_matches_pacdp_diffusion_settings(tmp_path):
+def test_dp_is_pacdps_twin_and_lerobot_dp_has_the_same_diffusion_settings(tmp_path):
     import draccus
     from lerobot.configs.policies import PreTrainedConfig
 
     preset = get_preset("cpu")
-    specs = plan_task(preset.tasks[0], preset, num_episodes=206)
+    specs = plan_task(preset.tasks[0], preset, num_episodes=206, lerobot_diffusion=True)
     dp = next(s for s in specs if s.method == "DP")
+    lerobot_dp = next(s for s in specs if s.method == "LeRobot-DP" and s.demos == dp.demos and s.seed == dp.seed)
     pac = next(s for s in specs if s.method == "PAC-DP" and s.demos == dp.demos and s.seed == dp.seed)
-    dp_cfg = train_config(dp, preset.tasks[0], tmp_path, preset.seed_offset, tmp_path)
-    pac_cfg = train_config(pac, preset.tasks[0], tmp_path, preset.seed_offset, tmp_path)
-    assert dp_cfg["dataset"] == pac_cfg["dataset"] and dp_cfg["seed"] == pac_cfg["seed"]
-    assert dp_cfg["dataset"]["eval_split"] == 0.0 and dp_cfg["eval_steps"] == 0
-    dp_policy = draccus.decode(PreTrainedConfig, dp_cfg["policy"])
-    pac_policy = draccus.decode(PreTrainedConfig, pac_cfg["policy"])
-    assert dp_policy.type == "diffusion" and pac_policy.type == "pacdp"
+    assert (dp.name.endswith("_dp"), lerobot_dp.name.endswith("_lerobot_dp")) == (True, True)
+    configs = [train_config(s, preset.tasks[0], tmp_path, preset.seed_offset, tmp_path) for s in (dp, lerobot_dp, pac)]
+    assert all(c["dataset"] == configs[2]["dataset"] and c["seed"] == configs[2]["seed"] for c in configs)
+    assert configs[0]["dataset"]["eval_split"] == 0.0 and configs[0]["eval_steps"] == 0
+    dp_policy, lerobot_policy, pac_policy = (draccus.decode(PreTrainedConfig, c["policy"]) for c in configs)
+    assert (dp_policy.type, dp_policy.bayesian, dp_policy.use_ema) == ("pacdp", False, True)
+    assert lerobot_policy.type == "diffusion" and pac_policy.type == "pacdp" and pac_policy.bayesian
     for field in ("down_dims", "diffusion_step_embed_dim", "horizon", "n_obs_steps", "n_action_steps",
                   "num_inference_steps", "noise_scheduler_type", "beta_schedule", "normalization_mapping",
                   "do_mask_loss_for_padding", "optimizer_lr", "scheduler_warmup_steps", "kernel_size"):  # fmt: skip
-        assert getattr(dp_policy, field) == getattr(pac_policy, field), field
+        assert getattr(dp_policy, field) == getattr(lerobot_policy, field) == getattr(pac_policy, field), field
     assert pac_policy.kl_weight == 1e-4 and pac_policy.prior_rho == -4.5
+    assert not any(s.method == "LeRobot-DP" for s in plan_task(preset.tasks[0], preset, num_episodes=206))
 
 
 def test_executor_skips_finished_runs_and_resumes_interrupted_ones(tmp_path, monkeypatch):

@@ -20,6 +20,7 @@ import gymnasium as gym
 import numpy as np
 
 from lerobot_pacdp.robomimic import compat
+from lerobot_pacdp.robomimic.rendering import choose_mujoco_gl
 from lerobot_pacdp.robomimic.tasks import FPS, RobomimicTask, get_task
 
 logger = logging.getLogger(__name__)
@@ -46,7 +47,8 @@ class _RobosuiteNoiseFilter(logging.Filter):
 
 
 def _import_robosuite():
-    """Import robosuite with its import-time chatter filtered out."""
+    """Import robosuite with its import-time chatter filtered out and an offscreen renderer chosen."""
+    choose_mujoco_gl()
     robosuite_logger = logging.getLogger("robosuite_logs")
     if not any(isinstance(f, _RobosuiteNoiseFilter) for f in robosuite_logger.filters):
         robosuite_logger.addFilter(_RobosuiteNoiseFilter())

@@ -44,6 +44,8 @@ def paper_config(task: str) -> dict:
             "prior_rho": PAPER_PRIOR_RHO,
             "delta": PAPER_DELTA,
             "inference_mode": "mean",
+            # Chi et al.'s code, which the paper builds on, trains on copy-padded actions too.
+            "do_mask_loss_for_padding": False,
             "push_to_hub": False,
         },
         "steps": t.train_steps,

@@ -34,11 +34,14 @@ import draccus
 import numpy as np
 
 from lerobot_pacdp.atomic_io import write_text_atomic
+from lerobot_pacdp.train_hooks import IN_MEMORY_DATA_ENV
 from lerobot_pacdp.study.presets import Preset, StudyError, TaskPreset, get_preset, validate, with_overrides
 
 logger = logging.getLogger("pacdp-study")
 
-METHODS = ("DP", "BDP", "PAC-DP")
+# DP is pacdp's `bayesian=false` twin (PAC-DP minus what the paper changes); LeRobot-DP, LeRobot's own
+# `diffusion` policy with the same settings, is an extra (`--lerobot_diffusion=true`).
+METHODS = ("DP", "BDP", "PAC-DP", "LeRobot-DP")
 SPLIT_SALT = 20_260_523  # decorrelates the episode order from the training seed
 REQUEST_FILE, DONE_FILE, LOG_FILE = "train_request.json", "done.json", "train.log"
 POLL_S, HEARTBEAT_S = 2.0, 60.0
@@ -53,7 +56,7 @@ class RunSpec:
     task: str
     demos: int
     seed: int
-    method: str  # DP, BDP or PAC-DP
+    method: str  # one of METHODS
     kl_weight: float | None  # None for DP
     prior_rho: float | None  # None for DP
     steps: int
@@ -66,6 +69,8 @@ class RunSpec:
     def name(self) -> str:
         if self.method == "DP":
             tag = "dp"
+        elif self.method == "LeRobot-DP":
+            tag = "lerobot_dp"
         elif self.method == "BDP":
             tag = f"bdp_rho{self.prior_rho:g}"
         else:
@@ -102,10 +107,12 @@ def split_episodes(num_episodes: int, seed: int, heldout: int, demos: Sequence[i
     return held, {d: sorted(rest[:d]) for d in demos}
 
 
-def plan_task(task: TaskPreset, preset: Preset, num_episodes: int, long_pair: bool = False) -> list[RunSpec]:
+def plan_task(
+    task: TaskPreset, preset: Preset, num_episodes: int, long_pair: bool = False, lerobot_diffusion: bool = False
+) -> list[RunSpec]:
     """The runs of one task; with `long_pair`, BDP and PAC-DP at the reference point, and DP beside them
     (the long runs must show where DP's held-out NPE turns up, and whether the KL term then separates
-    PAC-DP from BDP)."""
+    PAC-DP from BDP); with `lerobot_diffusion`, LeRobot's own diffusion policy beside DP."""
     kl_grid = [task.reference_kl_weight] + [k for k in preset.kl_weights if k != task.reference_kl_weight]
     rho_grid = list(preset.prior_rhos)
     if long_pair:
@@ -114,6 +121,8 @@ def plan_task(task: TaskPreset, preset: Preset, num_episodes: int, long_pair: bo
     else:
         points = [("DP", None, None)] + [("BDP", 0.0, r) for r in rho_grid]
         points += [("PAC-DP", k, r) for k in kl_grid for r in rho_grid]
+    if lerobot_diffusion:
+        points.insert(1, ("LeRobot-DP", None, None))
     runs = []
     for seed in preset.seeds:
         heldout, train_sets = split_episodes(num_episodes, seed, task.heldout, task.demos)
@@ -151,8 +160,10 @@ def train_config(spec: RunSpec, task: TaskPreset, dataset_root: Path | None, see
     if dataset_root is not None:
         config["dataset"]["root"] = str(dataset_root)
     policy = config["policy"]
-    if spec.method == "DP":
+    if spec.method == "LeRobot-DP":
         config["policy"] = _diffusion_policy({k: v for k, v in policy.items() if k != "type"})
+    elif spec.method == "DP":
+        policy.update(type="pacdp", bayesian=False)
     else:
         policy.update(type="pacdp", kl_weight=spec.kl_weight, prior_rho=spec.prior_rho)
     # The held-out demos are evaluated by the metrics sweep, not by lerobot-train's eval split.
@@ -282,6 +293,7 @@ class Executor:
         log.write(f"\n===== {time.strftime('%Y-%m-%d %H:%M:%S')} {status} at step {step}: {shlex.join(command)}\n")
         log.flush()
         env = {**os.environ, "OMP_NUM_THREADS": str(self.threads), "MKL_NUM_THREADS": str(self.threads)}
+        env[IN_MEMORY_DATA_ENV] = "1"  # LeRobot-DP reads its data the way pacdp does (lerobot_pacdp.train_hooks)
         env.setdefault("HF_HUB_OFFLINE", "1")  # every dataset of a study is local
         process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
         return Active(spec, process, log, time.monotonic(), step, self._stop_at(spec, step))
@@ -457,6 +469,7 @@ class StudyConfig:
     output_dir: Path = Path("outputs/study")
     dry_run: bool = False  # print the plan (runs, episodes, what is done / to resume) and exit
     long_pair: bool = False  # instead of the study: the long BDP / PAC-DP pair and DP (reference point, first seed)
+    lerobot_diffusion: bool = False  # also train LeRobot's own `diffusion` policy (method LeRobot-DP) beside DP
     tasks: list[str] | None = None
     demos: list[int] | None = None
     seeds: list[int] | None = None
@@ -493,11 +506,13 @@ def resolve_preset(cfg: StudyConfig) -> Preset:
     )  # fmt: skip
 
 
-def plan_study(preset: Preset, output_dir: Path, long_pair: bool = False) -> list[RunSpec]:
+def plan_study(
+    preset: Preset, output_dir: Path, long_pair: bool = False, lerobot_diffusion: bool = False
+) -> list[RunSpec]:
     return [
         spec
         for task in preset.tasks
-        for spec in plan_task(task, preset, count_episodes(task, output_dir), long_pair)
+        for spec in plan_task(task, preset, count_episodes(task, output_dir), long_pair, lerobot_diffusion)
     ]
 
 
@@ -547,7 +562,7 @@ def _setup_logging(output_dir: Path) -> None:
 def run_study(cfg: StudyConfig) -> int:
     preset = resolve_preset(cfg)
     output_dir = cfg.output_dir.absolute()
-    specs = plan_study(preset, output_dir, cfg.long_pair)
+    specs = plan_study(preset, output_dir, cfg.long_pair, cfg.lerobot_diffusion)
     check_requests(specs, output_dir)
     if cfg.dry_run:
         print(format_plan(specs, output_dir))

@@ -1,0 +1,175 @@
+"""What a trained policy achieved: its success rate over rollouts with a 95% interval, and one summary file.
+
+`lerobot-eval` writes `eval_info.json` (one row per episode with its seed and success); the interval is
+Wilson's score interval, which stays inside [0, 1] and is sensible at 0 or n successes (the normal
+approximation is not). `pacdp-summarize-run` joins it with the checkpoint (policy, training steps) and the
+held-out NPE from `pacdp-metrics` into the JSON the main job commits:
+
+    pacdp-summarize-run --eval_info=OUT/eval/eval_info.json --checkpoint=OUT/train/checkpoints/last/pretrained_model \
+        --metrics=OUT/metrics/metrics.json --task=lift --wall_time_s=812 --output=OUT/summary.json
+"""
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from lerobot_pacdp.atomic_io import write_text_atomic
+from lerobot_pacdp.cli_errors import UserInputError, run_draccus_cli
+
+Z_95 = 1.959963984540054  # standard normal quantile at 0.975
+
+
+def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, float]:
+    """Wilson's score interval for a binomial proportion (95% by default)."""
+    if n <= 0 or not 0 <= successes <= n:
+        raise ValueError(f"need 0 <= successes <= n and n > 0, got {successes} of {n}")
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    low = 0.0 if successes == 0 else max(0.0, centre - half)  # exact at the ends (the two terms cancel)
+    high = 1.0 if successes == n else min(1.0, centre + half)
+    return low, high
+
+
+@dataclass(frozen=True)
+class SuccessRate:
+    successes: int
+    n_episodes: int
+
+    @property
+    def rate(self) -> float:
+        return self.successes / self.n_episodes
+
+    @property
+    def ci95(self) -> tuple[float, float]:
+        return wilson_interval(self.successes, self.n_episodes)
+
+    def __str__(self) -> str:
+        low, high = self.ci95
+        return (f"{100 * self.rate:.1f}% ({self.successes}/{self.n_episodes} episodes; "
+                f"95% interval {100 * low:.1f}-{100 * high:.1f}%)")
+
+
+def success_rate_of(eval_info: dict) -> SuccessRate:
+    """The success rate of a `lerobot-eval` run from its episodes' outcomes.
+
+    LeRobot 0.6.1 writes them per task (`per_task[i].metrics.successes`; episode k of a run is seeded
+    `--seed + k`, so every episode has its own seed); single-env evaluations write `per_episode` rows with
+    their seeds, which must then be distinct."""
+    if eval_info.get("per_episode"):
+        episodes = eval_info["per_episode"]
+        seeds = [row.get("seed") for row in episodes]
+        if None not in seeds and len(set(seeds)) != len(seeds):
+            raise UserInputError(f"the {len(seeds)} episodes do not have distinct seeds; rerun lerobot-eval.")
+        outcomes = [bool(row["success"]) for row in episodes]
+    else:
+        outcomes = [bool(s) for task in eval_info.get("per_task", []) for s in task.get("metrics", {}).get("successes", [])]
+    if not outcomes:
+        raise UserInputError("the evaluation has no episode outcomes; pass the eval_info.json lerobot-eval wrote.")
+    return SuccessRate(sum(outcomes), len(outcomes))
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    task: str
+    policy: str
+    success_rate: float  # 0-1
+    n_episodes: int
+    successes: int
+    ci95: tuple[float, float]
+    heldout_npe: float | None
+    heldout_npe_sem: float | None  # clustered by episode
+    train_steps: int
+    wall_time_s: float | None
+    checkpoint: str
+
+
+def describe_policy(config: dict) -> str:
+    """A short label: the method (PAC-DP, BDP, DP twin, LeRobot's diffusion) and its PAC-Bayes settings."""
+    if config.get("type") != "pacdp":
+        return str(config.get("type"))
+    if not config.get("bayesian", True):
+        return "pacdp bayesian=false (DP twin)"
+    method = "BDP" if config.get("kl_weight") == 0 else "PAC-DP"
+    return f"pacdp {method} (kl_weight={config.get('kl_weight')}, prior_rho={config.get('prior_rho')})"
+
+
+def _read_json(path: Path, what: str) -> dict:
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise UserInputError(f"{path} does not exist; pass the {what}.") from None
+    except json.JSONDecodeError as exc:
+        raise UserInputError(f"{path} is not valid JSON ({exc.msg}); pass the {what}.") from None
+
+
+def _training_step(checkpoint: Path) -> int:
+    state = checkpoint.parent / "training_state" / "training_step.json"
+    if state.is_file():
+        return int(_read_json(state, "checkpoint's training state")["step"])
+    return int(_read_json(checkpoint / "train_config.json", "checkpoint's train_config.json")["steps"])
+
+
+def _heldout_npe(metrics: Path | None, checkpoint: Path) -> tuple[float | None, float | None]:
+    if metrics is None:
+        return None, None
+    rows = _read_json(metrics, "metrics.json pacdp-metrics wrote").get("rows") or []
+    mine = [row for row in rows if Path(row.get("checkpoint", "")).resolve() == checkpoint.resolve()] or rows[-1:]
+    if not mine:
+        raise UserInputError(f"{metrics} holds no rows; run pacdp-metrics on the checkpoint first.")
+    row = mine[-1]
+    return float(row["npe"]), (float(row["npe_sem"]) if row.get("npe_sem") is not None else None)
+
+
+def summarize_run(
+    eval_info: Path, checkpoint: Path, task: str, metrics: Path | None = None, wall_time_s: float | None = None
+) -> RunSummary:
+    success = success_rate_of(_read_json(eval_info, "eval_info.json lerobot-eval wrote"))
+    config = _read_json(checkpoint / "config.json", "checkpoint directory (its pretrained_model)")
+    npe, npe_sem = _heldout_npe(metrics, checkpoint)
+    return RunSummary(
+        task=task,
+        policy=describe_policy(config),
+        success_rate=success.rate,
+        n_episodes=success.n_episodes,
+        successes=success.successes,
+        ci95=success.ci95,
+        heldout_npe=npe,
+        heldout_npe_sem=npe_sem,
+        train_steps=_training_step(checkpoint),
+        wall_time_s=wall_time_s,
+        checkpoint=str(checkpoint),
+    )
+
+
+@dataclass
+class SummarizeRunConfig:
+    """`pacdp-summarize-run` options."""
+
+    eval_info: Path | None = None  # lerobot-eval's eval_info.json
+    checkpoint: Path | None = None  # the evaluated checkpoint's pretrained_model directory
+    task: str = ""
+    metrics: Path | None = None  # pacdp-metrics' metrics.json for the checkpoint (held-out NPE)
+    wall_time_s: float | None = None
+    output: Path | None = None  # the summary JSON to write
+
+
+def _summarize_main(cfg: SummarizeRunConfig) -> int:
+    if cfg.eval_info is None or cfg.checkpoint is None or not cfg.task or cfg.output is None:
+        raise UserInputError("pass --eval_info, --checkpoint, --task and --output.")
+    summary = summarize_run(cfg.eval_info, cfg.checkpoint, cfg.task, cfg.metrics, cfg.wall_time_s)
+    write_text_atomic(cfg.output, json.dumps(asdict(summary), indent=2) + "\n")
+    print(f"success rate: {SuccessRate(summary.successes, summary.n_episodes)}")
+    if summary.heldout_npe is not None:
+        print(f"held-out NPE (EMA posterior mean): {summary.heldout_npe:.4f}")
+    print(f"summary: {cfg.output}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_draccus_cli("pacdp-summarize-run", SummarizeRunConfig, _summarize_main, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
