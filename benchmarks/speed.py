@@ -8,10 +8,11 @@ clipping, the optimizer its preset builds, the policy's `update()`), as `lerobot
 - `pacdp`: PAC-DP (Bayesian U-Net, Eq. 9).
 
 pacdp/twin is the Bayesian overhead alone; pacdp/dp is what moving from LeRobot's `diffusion` costs (the EMA
-included). Timings alternate between the policies in one process, so background load hits all alike, and
-report medians; peak memory is measured per policy in a fresh subprocess (CPU: peak resident-memory growth
-over the run, sampled every millisecond; CUDA: torch.cuda.max_memory_allocated). Prints a table and writes
-JSON to benchmarks/results/.
+included). Timings alternate between the policies in one process, round by round, so background load hits
+all alike: the table shows median seconds, and each ratio is the median over rounds of that round's ratio.
+Peak memory is measured per policy in a fresh subprocess (CPU: peak resident-memory growth over the run,
+sampled every millisecond; CUDA: torch.cuda.max_memory_allocated). Prints a table and writes JSON to
+benchmarks/results/.
 
     python benchmarks/speed.py --preset cpu --threads 2                    # 2 CPU cores, CPU-preset U-Net
     python benchmarks/speed.py --preset paper --batch-size 64 --threads 2  # paper U-Net on 2 CPU cores
@@ -128,52 +129,56 @@ class Trainer:
         }
         self.metrics = MetricsTracker(len(batch["action"]), 10**6, 10**3, meters)
 
-    def step(self) -> float:
-        _sync(self.device)
-        start = time.perf_counter()
-        self._update_policy(self.metrics, self.policy, self.batch, self.optimizer, self.grad_clip_norm, self.accelerator)
-        _sync(self.device)
-        return time.perf_counter() - start
+    def step(self) -> tuple[float, float]:
+        return _timed(self.device, self._update_policy, self.metrics, self.policy, self.batch, self.optimizer,
+                      self.grad_clip_norm, self.accelerator)
 
 
-def chunk_latency(policy, batch, device) -> float:
+def _timed(device: str, fn, *args) -> tuple[float, float]:
+    """(wall seconds, this process's CPU seconds) of one call; CPU time is what contention inflates least."""
+    _sync(device)
+    wall, cpu = time.perf_counter(), time.process_time()
+    fn(*args)
+    _sync(device)
+    return time.perf_counter() - wall, time.process_time() - cpu
+
+
+def chunk_latency(policy, batch, device) -> tuple[float, float]:
     obs = {k: v[:1] for k, v in batch.items() if k.startswith("observation")}
     policy.eval()
-    _sync(device)
-    start = time.perf_counter()
-    policy.predict_action_chunk(obs)
-    _sync(device)
-    return time.perf_counter() - start
+    return _timed(device, policy.predict_action_chunk, obs)
 
 
-def measure_times(preset: Preset, device: str) -> dict[str, float]:
-    """Median seconds per training step and per action chunk, interleaving the methods."""
+def measure_times(preset: Preset, device: str) -> dict[str, dict[str, list[float]]]:
+    """Wall and CPU seconds of every timed training step and action chunk, the methods interleaved round by round."""
     trainers = {}
     for method in TRAINED:
         policy = build(method, preset, device)
         trainers[method] = Trainer(policy, make_batch(preset, policy.config, device), device)
-    step_times: dict[str, list[float]] = {m: [] for m in TRAINED}
+    steps: dict[str, list[tuple[float, float]]] = {m: [] for m in TRAINED}
     for i in range(preset.train_steps + WARMUP):
         for method, trainer in trainers.items():
-            seconds = trainer.step()
+            timing = trainer.step()
             if i >= WARMUP:
-                step_times[method].append(seconds)
+                steps[method].append(timing)
     acting = {"dp": trainers["dp"].policy, "pacdp": trainers["pacdp"].policy}
     acting["pacdp-sample"] = build("pacdp-sample", preset, device)
     acting["pacdp-sample"].load_state_dict(acting["pacdp"].state_dict())
     batch = trainers["dp"].batch
-    latencies: dict[str, list[float]] = {m: [] for m in ACTING}
+    chunks: dict[str, list[tuple[float, float]]] = {m: [] for m in ACTING}
     with torch.no_grad():
         for i in range(preset.latency_calls + WARMUP):
             for method, policy in acting.items():
-                seconds = chunk_latency(policy, batch, device)
+                timing = chunk_latency(policy, batch, device)
                 if i >= WARMUP:
-                    latencies[method].append(seconds)
+                    chunks[method].append(timing)
+    names = {"dp": "dp_chunk_s", "pacdp": "pacdp_mean_chunk_s", "pacdp-sample": "pacdp_sample_chunk_s"}
     return {
-        **{f"{m}_step_s": statistics.median(step_times[m]) for m in TRAINED},
-        "dp_chunk_s": statistics.median(latencies["dp"]),
-        "pacdp_mean_chunk_s": statistics.median(latencies["pacdp"]),
-        "pacdp_sample_chunk_s": statistics.median(latencies["pacdp-sample"]),
+        clock: {
+            **{f"{m}_step_s": [t[index] for t in steps[m]] for m in TRAINED},
+            **{names[m]: [t[index] for t in chunks[m]] for m in ACTING},
+        }
+        for index, clock in enumerate(("wall", "cpu"))
     }
 
 
@@ -194,7 +199,8 @@ def peak_memory_child(method: str, preset: Preset, device: str) -> None:
     """Run in a subprocess: build the policy and train a few steps, then print the peak memory (bytes).
 
     CPU: peak resident memory during construction and training minus the resident memory before it
-    (weights, gradients, optimizer state, EMA copy, activations). CUDA: peak allocated memory.
+    (weights, gradients, optimizer state, EMA copy, activations). CUDA: peak allocated memory of the last
+    step (LeRobot's `update_policy` resets the CUDA peak at each step).
     """
     baseline = psutil.Process().memory_info().rss
     sampler = _RssPeak()
@@ -211,25 +217,35 @@ def peak_memory_child(method: str, preset: Preset, device: str) -> None:
 
 
 def measure_memory(args: argparse.Namespace) -> dict[str, int]:
-    peaks = {}
+    peaks, preset = {}, PRESETS[args.preset]
     for method in TRAINED:
         command = [sys.executable, __file__, "--memory-child", method, "--preset", args.preset, "--device", args.device,
-                   "--batch-size", str(PRESETS[args.preset].batch_size), "--threads", str(args.threads)]
+                   "--batch-size", str(preset.batch_size), "--threads", str(args.threads),
+                   "--down-dims", *map(str, preset.down_dims)]
         out = subprocess.run(command, capture_output=True, text=True, check=True)
         peaks[f"{method}_peak_bytes"] = int(out.stdout.strip().splitlines()[-1])
     return peaks
 
 
-def ratios(times: dict[str, float], memory: dict[str, int]) -> dict[str, dict[str, float]]:
+def medians(samples: dict[str, list[float]]) -> dict[str, float]:
+    return {name: statistics.median(values) for name, values in samples.items()}
+
+
+def paired_ratio(samples: dict[str, list[float]], numerator: str, denominator: str) -> float:
+    """Median over rounds of numerator/denominator, each round's two runs back to back (load drift cancels)."""
+    return statistics.median(a / b for a, b in zip(samples[numerator], samples[denominator], strict=True))
+
+
+def ratios(samples: dict[str, list[float]], memory: dict[str, int]) -> dict[str, dict[str, float]]:
     """PAC-DP over each baseline; action chunks only against dp (the twin acts with the same network as dp)."""
     over_dp = {
-        "train_step": times["pacdp_step_s"] / times["dp_step_s"],
-        "mean_mode_latency": times["pacdp_mean_chunk_s"] / times["dp_chunk_s"],
-        "sample_mode_latency": times["pacdp_sample_chunk_s"] / times["dp_chunk_s"],
+        "train_step": paired_ratio(samples, "pacdp_step_s", "dp_step_s"),
+        "mean_mode_latency": paired_ratio(samples, "pacdp_mean_chunk_s", "dp_chunk_s"),
+        "sample_mode_latency": paired_ratio(samples, "pacdp_sample_chunk_s", "dp_chunk_s"),
         "peak_memory": memory["pacdp_peak_bytes"] / memory["dp_peak_bytes"],
     }
     over_twin = {
-        "train_step": times["pacdp_step_s"] / times["twin_step_s"],
+        "train_step": paired_ratio(samples, "pacdp_step_s", "twin_step_s"),
         "peak_memory": memory["pacdp_peak_bytes"] / memory["twin_peak_bytes"],
     }
     return {"ratios_pacdp_over_dp": over_dp, "ratios_pacdp_over_twin": over_twin}
@@ -254,6 +270,18 @@ def print_table(result: dict) -> None:
     row("peak memory (MiB)", "peak_memory", m["dp_peak_bytes"], m["twin_peak_bytes"], m["pacdp_peak_bytes"], 2**-20)
 
 
+def measurement_command(args: argparse.Namespace) -> str:
+    """The command that repeats this measurement (the flags that change what is measured)."""
+    flags = ["--preset", args.preset, "--device", args.device, "--threads", str(args.threads)]
+    for flag, value in (("--batch-size", args.batch_size), ("--train-steps", args.train_steps),
+                        ("--latency-calls", args.latency_calls)):
+        if value:
+            flags += [flag, str(value)]
+    if args.down_dims:
+        flags += ["--down-dims", *map(str, args.down_dims)]
+    return " ".join(["python", "benchmarks/speed.py", *flags])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
@@ -261,12 +289,15 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, help="override the preset's batch size")
     parser.add_argument("--train-steps", type=int, help="override the preset's timed training steps per method")
     parser.add_argument("--latency-calls", type=int, help="override the preset's timed action chunks per method")
+    parser.add_argument("--down-dims", type=int, nargs="+", help="override the preset's U-Net widths")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch intra-op threads")
+    parser.add_argument("--output-dir", type=Path, default=RESULTS_DIR, help="where the JSON goes")
     parser.add_argument("--note", default="", help="what else ran on the machine, recorded in the JSON")
     parser.add_argument("--memory-child", help=argparse.SUPPRESS)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    overrides = {"batch_size": args.batch_size, "train_steps": args.train_steps, "latency_calls": args.latency_calls}
+    overrides = {"batch_size": args.batch_size, "train_steps": args.train_steps, "latency_calls": args.latency_calls,
+                 "down_dims": tuple(args.down_dims) if args.down_dims else None}
     PRESETS[args.preset] = dataclasses.replace(PRESETS[args.preset], **{k: v for k, v in overrides.items() if v})
     preset = PRESETS[args.preset]
     if args.memory_child:
@@ -275,7 +306,7 @@ def main() -> None:
 
     load_before = os.getloadavg()
     started = time.time()
-    times = measure_times(preset, args.device)
+    timings = measure_times(preset, args.device)
     memory = measure_memory(args)
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
     device_name = (
@@ -287,17 +318,28 @@ def main() -> None:
         "config": dataclasses.asdict(preset),
         "device": device_name,
         "torch": torch.__version__,
-        "command": " ".join(["python", "benchmarks/speed.py", *sys.argv[1:]]),
-        "seconds": times,
+        "command": measurement_command(args),
+        "seconds": medians(timings["wall"]),
+        "seconds_per_round": timings["wall"],
         "memory_bytes": memory,
-        **ratios(times, memory),
+        **ratios(timings["wall"], memory),
         "targets": TARGETS.get((args.preset, kind), {}),
         "machine_load": {"loadavg_1_5_15_before": load_before, "loadavg_1_5_15_after": os.getloadavg(),
                          "wall_s": round(time.time() - started, 1), "note": args.note},
     }
+    if kind == "cpu":  # the same medians in this process's CPU time (all threads): less inflated by other jobs
+        result["cpu_seconds"] = medians(timings["cpu"])
+        result["cpu_time_ratios"] = {
+            k: {m: v for m, v in r.items() if m != "peak_memory"} for k, r in ratios(timings["cpu"], memory).items()
+        }
     print_table(result)
-    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-    out = RESULTS_DIR / f"speed_{args.preset}_b{preset.batch_size}_{kind}.json"
+    cpu = result.get("cpu_time_ratios")
+    if cpu:
+        print("in CPU time: train step /DP {:.2f} /twin {:.2f}, mean-mode chunk {:.2f}, sample-mode chunk {:.2f}".format(
+            cpu["ratios_pacdp_over_dp"]["train_step"], cpu["ratios_pacdp_over_twin"]["train_step"],
+            cpu["ratios_pacdp_over_dp"]["mean_mode_latency"], cpu["ratios_pacdp_over_dp"]["sample_mode_latency"]))
+    args.output_dir.mkdir(parents=True, exist_ok=True)
+    out = args.output_dir / f"speed_{args.preset}_b{preset.batch_size}_{kind}.json"
     write_text_atomic(out, json.dumps(result, indent=2))
     print(f"wrote {out}")
 

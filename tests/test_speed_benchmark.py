@@ -1,0 +1,45 @@
+"""benchmarks/speed.py, the script behind the README's performance rows and the prepared GPU command."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+
+from pacdp_testing import REPO_ROOT
+
+
+@pytest.mark.slow
+def test_speed_benchmark_prints_the_ratio_table_and_writes_consistent_json(tmp_path):
+    command = [sys.executable, str(REPO_ROOT / "benchmarks" / "speed.py"), "--preset", "cpu", "--down-dims", "8", "16",
+               "--batch-size", "2", "--train-steps", "2", "--latency-calls", "1", "--threads", "1",
+               "--output-dir", str(tmp_path), "--note", "test run"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HF_HUB_OFFLINE": "1"}
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    table = result.stdout
+    for row in ("train step (ms)", "mean-mode chunk (ms)", "sample-mode chunk (ms)", "peak memory (MiB)", "in CPU time"):
+        assert row in table
+    [written] = list(tmp_path.iterdir())
+    assert written.name == "speed_cpu_b2_cpu.json"
+    data = json.loads(written.read_text())
+    s, rounds, m = data["seconds"], data["seconds_per_round"], data["memory_bytes"]
+    assert data["config"]["down_dims"] == [8, 16] and data["machine_load"]["note"] == "test run"
+    assert data["command"] == ("python benchmarks/speed.py --preset cpu --device cpu --threads 1 --batch-size 2 "
+                               "--train-steps 2 --latency-calls 1 --down-dims 8 16")
+    assert all(len(v) == 2 for v in [rounds["dp_step_s"], rounds["twin_step_s"], rounds["pacdp_step_s"]])
+    assert s["dp_step_s"] == pytest.approx(sum(rounds["dp_step_s"]) / 2)  # the median of two rounds
+
+    def paired(a, b):  # the median over rounds of the per-round ratio (two rounds: their mean)
+        return sum(x / y for x, y in zip(rounds[a], rounds[b], strict=True)) / len(rounds[a])
+
+    assert data["ratios_pacdp_over_dp"]["train_step"] == pytest.approx(paired("pacdp_step_s", "dp_step_s"))
+    assert data["ratios_pacdp_over_twin"]["train_step"] == pytest.approx(paired("pacdp_step_s", "twin_step_s"))
+    assert data["ratios_pacdp_over_dp"]["mean_mode_latency"] == pytest.approx(
+        rounds["pacdp_mean_chunk_s"][0] / rounds["dp_chunk_s"][0]
+    )
+    assert data["ratios_pacdp_over_twin"]["peak_memory"] == pytest.approx(m["pacdp_peak_bytes"] / m["twin_peak_bytes"])
+    assert all(v > 0 and math.isfinite(v) for v in [*s.values(), *m.values(), *data["cpu_seconds"].values()])
+    assert data["targets"]["train_step"] == 1.15
