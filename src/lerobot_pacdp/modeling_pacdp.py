@@ -122,8 +122,9 @@ class PacdpPolicy(DiffusionPolicy):
         if not self.config.bayesian:
             with self._acting(trained):
                 risk, _ = super().forward(batch)
-            self._check_finite(denoise_loss=risk.item())
-            return risk, {"denoise_loss": risk.item()}
+            parts = {"denoise_loss": risk.item()}
+            self._check_finite(parts)
+            return risk, parts
 
         num_samples = self.config.num_train_samples
         if num_samples is None:
@@ -137,38 +138,50 @@ class PacdpPolicy(DiffusionPolicy):
                 kl = kl_divergence(trained.unet)
             sigma_mean = mean_posterior_sigma(trained.unet)
         objective = pac_bayes_objective(risk, kl, num_samples, self.config.delta, self.config.kl_weight)
-        parts = {
-            "denoise_loss": risk.item(),
-            "kl": kl.item(),
-            "bound_sqrt_term": objective.sqrt_term.item(),
-            "bound_linear_term": objective.linear_term.item(),
-        }
-        self._check_finite(**parts)
+        terms = (risk, kl.to(risk.dtype), objective.sqrt_term, objective.linear_term)
+        values = torch.stack([t.detach() for t in terms]).tolist()  # one host sync for the four logged parts
+        parts = dict(zip(("denoise_loss", "kl", "bound_sqrt_term", "bound_linear_term"), values, strict=True))
+        self._check_finite(parts)
         return objective.total, {**parts, "sigma_mean": sigma_mean}
 
-    def _check_finite(self, **terms: float) -> None:
-        bad = {name: value for name, value in terms.items() if not math.isfinite(value)}
-        if bad:
-            raise NonFiniteTrainingError(
-                f"PAC-DP: non-finite loss at training step {int(self.num_updates) + 1}: "
-                + ", ".join(f"{name} = {value}" for name, value in terms.items())
-                + f" (non-finite: {', '.join(bad)}). Training stopped before the step, so no checkpoint "
-                "holds it. Check the dataset for NaN/inf values or lower the learning rate."
-            )
+    def _non_finite_tensors(self) -> list[str]:
+        return [k for k, v in self.state_dict().items() if v.is_floating_point() and not v.isfinite().all()]
+
+    def _check_finite(self, parts: dict[str, float]) -> None:
+        """Stop at the first non-finite loss, saying which term and whether the weights were already lost."""
+        bad = [name for name, value in parts.items() if not math.isfinite(value)]
+        if not bad:
+            return
+        cause = (
+            "the trained weights are already non-finite: the previous optimizer step had a non-finite gradient; "
+            "lower the learning rate"
+            if any(k.startswith(("raw_diffusion.", "diffusion.")) for k in self._non_finite_tensors())
+            else "the weights are finite, so this batch holds NaN/inf values: check the dataset (the pacdp "
+            "converters refuse them)"
+        )
+        raise NonFiniteTrainingError(
+            f"PAC-DP: non-finite loss at training step {int(self.num_updates) + 1}: "
+            + ", ".join(f"{name} = {value}" for name, value in parts.items())
+            + f" (non-finite: {', '.join(bad)}); {cause}. Training stopped; no checkpoint holds a non-finite weight."
+        )
 
     def update(self) -> None:
-        """After each optimizer step (LeRobot's hook): refuse non-finite weights, then step the EMA."""
-        step = int(self.num_updates)
-        trained = list(self.trained_diffusion.parameters())
-        if not torch.stack(torch._foreach_norm(trained)).isfinite().all():
-            raise NonFiniteTrainingError(
-                f"PAC-DP: optimizer step {step + 1} made the trained weights non-finite (a non-finite "
-                "gradient); training stopped before any checkpoint could keep them. "
-                "Lower the learning rate or check the data."
-            )
+        """After each optimizer step (LeRobot's hook): the EMA step."""
         if self.raw_diffusion is not None:
-            update_ema(self.diffusion, self.raw_diffusion, ema_decay(step, self.config.ema_power, self.config.ema_max_decay))
+            decay = ema_decay(int(self.num_updates), self.config.ema_power, self.config.ema_max_decay)
+            update_ema(self.diffusion, self.raw_diffusion, decay)
         self.num_updates += 1
+
+    def _save_pretrained(self, save_directory: Path, state_dict: dict[str, Tensor] | None = None) -> None:
+        """LeRobot's save, refused for non-finite weights (a non-finite gradient in the last step before a
+        checkpoint; earlier ones are caught by the next step's loss)."""
+        bad = self._non_finite_tensors()
+        if bad:
+            raise NonFiniteTrainingError(
+                f"PAC-DP: refusing to save a checkpoint after update {int(self.num_updates)}: {len(bad)} tensors "
+                f"are non-finite (e.g. {bad[:3]}), from a non-finite gradient; lower the learning rate."
+            )
+        super()._save_pretrained(save_directory, state_dict)
 
     def inference_weights(self, generator: torch.Generator | None = None) -> contextlib.AbstractContextManager:
         """The weights one action chunk is generated with (paper Algorithm 2)."""
