@@ -120,10 +120,16 @@ def test_nll_baseline_is_fitted_to_the_complete_held_out_chunks(tiny_runs, tiny_
     assert len(result.nll.log_snr) == 5 and result.nll.log_snr[0] == pytest.approx(7.37, abs=0.01)
 
 
-def test_success_rate_through_lerobots_eval_loop(tiny_runs, tmp_path):
+def test_success_rate_through_lerobots_eval_loop(tiny_runs, tmp_path, monkeypatch):
     """The tiny policies are PushT-shaped (agent xy + 16 keypoints -> xy), so gym-pusht can roll them out.
 
-    Held-out episodes come from the run's own split (train_config.json) here."""
+    Held-out episodes come from the run's own split (train_config.json) here. LeRobot's loop closes the
+    envs it is given (a closed robomimic env cannot reset), so every checkpoint gets its own."""
+    import lerobot.envs.factory
+
+    made = []
+    make_env = lerobot.envs.factory.make_env
+    monkeypatch.setattr(lerobot.envs.factory, "make_env", lambda *a, **k: made.append(1) or make_env(*a, **k))
     argv = [
         f"--runs={tiny_runs['pacdp_s1']}",
         f"--output_dir={tmp_path}",
@@ -136,7 +142,7 @@ def test_success_rate_through_lerobots_eval_loop(tiny_runs, tmp_path):
     ]
     assert sweep.main(argv) == 0
     rows = json.loads((tmp_path / "metrics.json").read_text())["rows"]
-    assert len(rows) == len(STEPS)
+    assert len(rows) == len(STEPS) == len(made)
     assert all(r["success_rate"] == 0.0 and r["nll_bound"] is None for r in rows)  # 3 steps cannot push the T home
     assert (tmp_path / "success_rate.png").read_bytes()[:8] == PNG_MAGIC
     assert not (tmp_path / "nll_bound.png").exists()

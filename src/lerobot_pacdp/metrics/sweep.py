@@ -142,10 +142,13 @@ def method_label(loaded: LoadedPolicy) -> str:
 
 
 @torch.no_grad()
-def success_rate(loaded: LoadedPolicy, envs: dict, env_cfg: EnvConfig, n_episodes: int, seed: int) -> float:
-    """Fraction of successful rollouts through LeRobot's own evaluation loop."""
-    from lerobot.envs.factory import make_env_pre_post_processors
+def success_rate(loaded: LoadedPolicy, env_cfg: EnvConfig, n_envs: int, n_episodes: int, seed: int) -> float:
+    """Fraction of successful rollouts through LeRobot's own evaluation loop (which closes the envs it is
+    given, so each checkpoint gets fresh ones)."""
+    from lerobot.envs.factory import make_env, make_env_pre_post_processors
     from lerobot.scripts.lerobot_eval import eval_policy_all
+
+    envs = make_env(env_cfg, n_envs=n_envs, use_async_envs=False)
 
     env_preprocessor, env_postprocessor = make_env_pre_post_processors(env_cfg, loaded.policy.config)
     info = eval_policy_all(
@@ -325,37 +328,28 @@ def run_sweep(cfg: SweepConfig) -> tuple[list[dict], dict]:
         if previous.get("settings") == settings:
             stored = {row["checkpoint"]: row for row in previous["rows"]}
 
-    envs = None
-    if cfg.env is not None:
-        from lerobot.envs.factory import make_env
-
-        envs = make_env(cfg.env, n_envs=cfg.eval_batch_size, use_async_envs=False)
     rows: list[dict] = []
     heldout_sets, shared_data = {}, {}
-    try:
-        for run, label in zip(runs, labels, strict=True):
-            data = None
-            for step, ckpt in tqdm(checkpoints[run], desc=f"{run.name}", unit="ckpt"):
-                if str(ckpt) in stored:
-                    rows.append(stored[str(ckpt)] | {"label": label or stored[str(ckpt)]["label"]})
-                    continue
-                loaded = load_policy(ckpt, cfg.device)
-                if data is None:
-                    data = _run_data(cfg, loaded, shared_data)
-                    heldout_sets[str(run)] = data.episodes
-                nll_steps = evenly_spaced_steps(len(alphas_cumprod(loaded.policy)), cfg.nll_steps)
-                result = evaluate_checkpoint(
-                    loaded, data, cfg.seed, cfg.batch_size, cfg.nll, nll_steps, desc=f"step {step}"
-                )
-                row = checkpoint_row(result, label or method_label(loaded), run, step, loaded)
-                row["success_rate"] = success_rate(loaded, envs, cfg.env, cfg.eval_episodes, cfg.seed) if envs else None
-                rows.append(row)
-                _write_tables(rows, settings, cfg.output_dir)
-    finally:
-        if envs is not None:
-            from lerobot.envs.utils import close_envs
-
-            close_envs(envs)
+    for run, label in zip(runs, labels, strict=True):
+        data = None
+        for step, ckpt in tqdm(checkpoints[run], desc=f"{run.name}", unit="ckpt"):
+            if str(ckpt) in stored:
+                rows.append(stored[str(ckpt)] | {"label": label or stored[str(ckpt)]["label"]})
+                continue
+            loaded = load_policy(ckpt, cfg.device)
+            if data is None:
+                data = _run_data(cfg, loaded, shared_data)
+                heldout_sets[str(run)] = data.episodes
+            nll_steps = evenly_spaced_steps(len(alphas_cumprod(loaded.policy)), cfg.nll_steps)
+            result = evaluate_checkpoint(
+                loaded, data, cfg.seed, cfg.batch_size, cfg.nll, nll_steps, desc=f"step {step}"
+            )
+            row = checkpoint_row(result, label or method_label(loaded), run, step, loaded)
+            row["success_rate"] = (
+                success_rate(loaded, cfg.env, cfg.eval_batch_size, cfg.eval_episodes, cfg.seed) if cfg.env else None
+            )
+            rows.append(row)
+            _write_tables(rows, settings, cfg.output_dir)
     if len({tuple(v) for v in heldout_sets.values()}) > 1:
         logger.warning("the runs were evaluated on different held-out episodes; their curves are not paired.")
     _write_tables(rows, settings, cfg.output_dir)

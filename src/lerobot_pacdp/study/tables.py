@@ -81,8 +81,6 @@ def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfini
 def add_success_rates(preset: Preset, runs: list[RunSpec], rows: list[dict], output_dir: Path, cache_dir: Path) -> None:
     """Success rate of each run's last `success_last_k` checkpoints, cached in `success.json`."""
     from lerobot.envs.configs import EnvConfig
-    from lerobot.envs.factory import make_env
-    from lerobot.envs.utils import close_envs
 
     task = preset.task(runs[0].task)
     env_dict = task.train_config["env"]
@@ -95,15 +93,11 @@ def add_success_rates(preset: Preset, runs: list[RunSpec], rows: list[dict], out
     if todo:
         env_cfg = draccus.decode(EnvConfig, env_dict)
         n_envs = min(10, preset.success_episodes)
-        envs = make_env(env_cfg, n_envs=n_envs, use_async_envs=False)
-        try:
-            for ckpt in todo:
-                loaded = load_policy(ckpt, preset.device)
-                rates[str(ckpt)] = success_rate(loaded, envs, env_cfg, preset.success_episodes, seed=0)
-                logger.info("success rate %s: %.3f over %d rollouts", ckpt, rates[str(ckpt)], preset.success_episodes)
-                write_json_atomic(cache_file, {"settings": settings, "rates": rates})
-        finally:
-            close_envs(envs)
+        for ckpt in todo:
+            loaded = load_policy(ckpt, preset.device)
+            rates[str(ckpt)] = success_rate(loaded, env_cfg, n_envs, preset.success_episodes, seed=0)
+            logger.info("success rate %s: %.3f over %d rollouts", ckpt, rates[str(ckpt)], preset.success_episodes)
+            write_json_atomic(cache_file, {"settings": settings, "rates": rates})
     for row in rows:
         if row["checkpoint"] in rates:
             row["success_rate"] = rates[row["checkpoint"]]
