@@ -4,7 +4,9 @@
 #
 #   bash examples/evaluate_and_summarize.sh CHECKPOINT OUTPUT_DIR TASK START_SECONDS -- <lerobot-eval --env.* flags>
 #
-# Knobs: EVAL_EPISODES (rollouts, default 50, distinct seeds), EVAL_BATCH (envs stepped together, default 10).
+# Knobs: EVAL_EPISODES (rollouts, default 50, distinct seeds), EVAL_BATCH (envs stepped together, default 1:
+# LeRobot steps every env of a batch until the slowest one ends, so on a CPU one failed 400-step episode
+# would hold up the whole batch; larger batches pay off only where a policy step is expensive, e.g. on a GPU).
 set -euo pipefail
 checkpoint="$1" out="$2" task="$3" start="$4"
 shift 4
@@ -12,9 +14,9 @@ shift 4
 bin="$(dirname "$0")/../.venv/bin"
 [ -x "$bin/lerobot-eval" ] || bin="$(dirname "$(command -v lerobot-eval)")"
 eval_episodes="${EVAL_EPISODES:-50}"
-eval_batch="${EVAL_BATCH:-10}"
+eval_batch="${EVAL_BATCH:-1}"
 
-echo "== rolling out $checkpoint: $eval_episodes episodes, $eval_batch at a time (the first $eval_batch are recorded as videos)"
+echo "== rolling out $checkpoint: $eval_episodes episodes, $eval_batch at a time (the first 10 are recorded as videos)"
 rm -rf "$out/eval" "$out/metrics"
 "$bin/lerobot-eval" --policy.path="$checkpoint" "$@" \
   --eval.n_episodes="$eval_episodes" --eval.batch_size="$eval_batch" --eval.use_async_envs=false \

@@ -31,6 +31,6 @@ rm -rf "$out/train"
 "$bin/lerobot-train" --config_path="$config" --dataset.root="$out/data" ${STEPS:+--steps="$STEPS"} \
   --output_dir="$out/train" --wandb.enable=false
 
-echo "== 4/4 evaluating the last checkpoint"
+echo "== 4/4 evaluating the last checkpoint (videos rendered at 128x128: the policy reads states, the frames are for people)"
 bash examples/evaluate_and_summarize.sh "$out/train/checkpoints/last/pretrained_model" "$out" lift "$start" -- \
-  --env.type=robomimic --env.task=lift
+  --env.type=robomimic --env.task=lift --env.observation_height=128 --env.observation_width=128

@@ -4,8 +4,10 @@
   Square/Transport), rho = -4.5, 250k steps (500k for Transport/ToolHang), on the 200 `ph` demos split
   140 train / 60 held out (`episodes=[0..199]`, `eval_split=0.3`), evaluated with
   `--env.robosuite_compat=1.4` (the released files were recorded with robosuite <= 1.4).
-- `<task>_cpu.json` (Lift, Can, Square): a CPU smoke preset for scripted demos (robosuite 1.5 data,
-  `robosuite_compat=1.5`): a 4.5M-parameter U-Net (down_dims 64/128/256), batch 64, 3000 steps.
+- `<task>_cpu.json` (Lift, Can, Square): the CPU recipe for scripted demos (robosuite 1.5 data,
+  `robosuite_compat=1.5`): a small U-Net (down_dims 32/64/128), batch 64, lr 1e-3 with 100 warm-up steps
+  and a cosine decay over 3000 steps, chosen from the measured curves in results/recipes/ (DP's lr 1e-4
+  with 500 warm-up steps is sized for 10^5-10^6 steps and leaves PAC-DP far from converged at 3000).
 
 Regenerate after changing the task table: `python -m lerobot_pacdp.robomimic.train_configs [configs/robomimic]`
 (a test checks the files agree with the table).
@@ -69,14 +71,16 @@ def cpu_config(task: str) -> dict:
             "kl_weight": t.kl_weight,
             "prior_rho": PAPER_PRIOR_RHO,
             "delta": PAPER_DELTA,
-            "down_dims": [64, 128, 256],
+            "down_dims": [32, 64, 128],
             "diffusion_step_embed_dim": 64,
+            "optimizer_lr": 1e-3,
+            "scheduler_warmup_steps": 100,
             "device": "cpu",
             "push_to_hub": False,
         },
         "steps": 3000,
         "batch_size": 64,
-        "save_freq": 1000,
+        "save_freq": 500,
         "eval_steps": 500,
         "env_eval_freq": 0,
         "log_freq": 100,
