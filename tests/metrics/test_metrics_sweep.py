@@ -15,6 +15,7 @@ from lerobot_pacdp.metrics.comparison import paired_npe_difference
 from lerobot_pacdp.metrics.data import EvaluationData
 from lerobot_pacdp.metrics.nll_bound import GaussianBaseline
 from lerobot_pacdp.metrics.noise_prediction import alphas_cumprod, noise_prediction_errors, policy_denoiser
+
 from metrics_testing import REPO_ID, STEPS
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
