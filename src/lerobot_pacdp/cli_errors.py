@@ -79,7 +79,10 @@ def run_draccus_cli[T](prog: str, config_class: type[T], body: Callable[[T], int
         try:
             cfg = draccus.parse(config_class, args=args, prog=prog)
         except ParsingError as exc:
-            raise UserInputError(str(exc).replace("\n", " ")) from None
+            message = str(exc).replace("\n", " ")
+            if "valid input for a list type" in message:
+                message += " Write a list in brackets, as LeRobot's CLIs do: --flag=[a,b] (one item: --flag=[a])."
+            raise UserInputError(message) from None
         return body(cfg)
 
     return report_user_errors(prog, parse_and_run)

@@ -287,7 +287,9 @@ def _settings(cfg: SweepConfig) -> dict:
     """What a stored row depends on besides the checkpoint: rows are reused only if these match."""
     keys = ("seed", "nll", "nll_steps", "frame_stride", "eval_episodes")
     settings = {k: getattr(cfg, k) for k in keys}
-    episodes = None if cfg.episodes is None else ",".join(map(str, selected_episodes(cfg.episodes)))
+    # Stored as earlier versions wrote it (a range as typed, a list comma-joined), so rows already written
+    # (the committed results/ among them) are still reused.
+    episodes = cfg.episodes if cfg.episodes is None or isinstance(cfg.episodes, str) else ",".join(map(str, cfg.episodes))
     env = None if cfg.env is None else repr(cfg.env)
     settings.update(episodes=episodes, dataset=str(cfg.dataset), env=env, rows_version=ROWS_VERSION)
     return settings

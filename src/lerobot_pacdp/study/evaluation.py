@@ -97,19 +97,14 @@ def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path, evalua
     todo = [c for c in wanted if c not in rates] if evaluate else []
     if todo:
         from lerobot.envs.configs import EnvConfig
-        from lerobot.envs.factory import make_env
-        from lerobot.envs.utils import close_envs
 
         env_cfg = draccus.decode(EnvConfig, env_dict)
-        envs = make_env(env_cfg, n_envs=min(10, preset.success_episodes), use_async_envs=False)
-        try:
-            for ckpt in todo:
-                loaded = load_policy(ckpt, preset.device)
-                rates[ckpt] = success_rate(loaded, envs, env_cfg, preset.success_episodes, seed=0)
-                logger.info("success rate %s: %.3f over %d rollouts", ckpt, rates[ckpt], preset.success_episodes)
-                write_json_atomic(cache_file, {"settings": settings, "rates": rates})
-        finally:
-            close_envs(envs)
+        n_envs = min(10, preset.success_episodes)
+        for ckpt in todo:  # `success_rate` makes fresh envs for each checkpoint (LeRobot's loop closes them)
+            loaded = load_policy(ckpt, preset.device)
+            rates[ckpt] = success_rate(loaded, env_cfg, n_envs, preset.success_episodes, seed=0)
+            logger.info("success rate %s: %.3f over %d rollouts", ckpt, rates[ckpt], preset.success_episodes)
+            write_json_atomic(cache_file, {"settings": settings, "rates": rates})
     for row in rows:
         if row["checkpoint"] in rates:
             row["success_rate"] = rates[row["checkpoint"]]

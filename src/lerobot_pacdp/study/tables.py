@@ -265,10 +265,11 @@ def report(
 ) -> None:
     """Tables, CSVs and plots of `rows` (`evaluation.evaluate_runs`) under `output_dir/results[_long]`."""
     results = output_dir / ("results_long" if long_pair else "results")
-    reported = {r["name"] for r in rows}
+    reported = {(r["group"], r["task"], r["name"]) for r in rows}
     if len(reported) < len(specs):
         logger.warning("tables cover %d of %d runs: the others are not finished yet.", len(reported), len(specs))
-    short = [s.name for s in specs if s.name in reported and run_state(s, output_dir).status == "resume"]
+    short = [s.name for s in specs
+             if (s.group, s.task, s.name) in reported and run_state(s, output_dir).status == "resume"]  # fmt: skip
     if short:
         logger.warning("reported before their last step (see last_step in runs.csv and the dynamics table): %s", short)
     if not rows:
