@@ -31,12 +31,6 @@ from lerobot_pacdp.study.tables import report
 logger = logging.getLogger("pacdp-study")
 
 EXECUTORS = ("local", "slurm")
-# Diffusion Policy's PushT demos where this project's machines keep them: the CLI's default when present.
-SHARED_PUSHT_ZARR = Path("../shared/data/pusht/pusht_cchi_v7_replay.zarr")
-
-
-def _shared_pusht_zarr() -> Path | None:
-    return SHARED_PUSHT_ZARR if SHARED_PUSHT_ZARR.exists() else None
 
 
 @dataclass
@@ -45,9 +39,9 @@ class StudyConfig:
 
     preset: str = "cpu"  # cpu | paper (see lerobot_pacdp.study.presets)
     output_dir: Path = Path("outputs/study")
-    # PushT demos (Diffusion Policy's pusht_cchi_v7_replay.zarr), converted into output_dir once; default:
-    # ../shared/data/pusht/pusht_cchi_v7_replay.zarr if it exists.
-    pusht_zarr: Path | None = field(default_factory=_shared_pusht_zarr)
+    # PushT demos (Diffusion Policy's pusht_cchi_v7_replay.zarr, from its pusht.zip), converted into output_dir
+    # once; needed to plan a PushT task until its dataset is there.
+    pusht_zarr: Path | None = None
     dry_run: bool = False  # print the plan (runs, episodes, what is done / to resume; SLURM: each job) and exit
     long_pair: bool = False  # instead of the study: the long DP / BDP / PAC-DP runs (reference point, first seed)
     lerobot_diffusion: bool = False  # also train LeRobot's own `diffusion` policy (method LeRobot-DP) beside DP
