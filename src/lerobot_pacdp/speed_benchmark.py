@@ -16,7 +16,7 @@ benchmarks/results/ (the checkout's `benchmarks/speed.py` runs this module), or 
 
     python benchmarks/speed.py --preset cpu --threads 2                    # 2 CPU cores, CPU-preset U-Net
     python benchmarks/speed.py --preset paper --batch-size 64 --threads 2  # paper U-Net on 2 CPU cores
-    python benchmarks/speed.py --preset paper --device cuda --batch-size 256  # the GPU row (a few minutes)
+    python benchmarks/speed.py --preset paper --device cuda --batch-size 256  # the GPU row
 """
 
 import argparse
