@@ -70,7 +70,7 @@ def main() -> None:
                 print(f"round {round_index} {name}: {runs[name][-1]}", flush=True)
     median = {name: {k: statistics.median(r[k] for r in rs) for k in rs[0]} for name, rs in runs.items()}
     speedup = median["in_memory"]["steps_per_s"] / median["lerobot"]["steps_per_s"]
-    print(f"\n| data path | update s/step | data s/step | data share | steps/s |\n|---|---|---|---|---|")
+    print("\n| data path | update s/step | data s/step | data share | steps/s |\n|---|---|---|---|---|")
     for name, m in median.items():
         print(f"| {name} | {m['update_s']:.3f} | {m['data_s']:.3f} | {100 * m['data_share']:.1f}% | {m['steps_per_s']:.2f} |")
     print(f"in-memory / LeRobot steps/s: {speedup:.2f}x")

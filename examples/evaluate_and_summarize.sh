@@ -23,7 +23,7 @@ rm -rf "$out/eval" "$out/metrics"
   --output_dir="$out/eval"
 
 echo "== held-out noise-prediction error of the checkpoint (pacdp-metrics, the run's held-out demos)"
-"$bin/pacdp-metrics" --runs="$checkpoint" --nll=false --output_dir="$out/metrics" > "$out/metrics.log" 2>&1 \
+"$bin/pacdp-metrics" --runs="[$checkpoint]" --nll=false --output_dir="$out/metrics" > "$out/metrics.log" 2>&1 \
   || { cat "$out/metrics.log"; exit 1; }
 
 "$bin/pacdp-summarize-run" --eval_info="$out/eval/eval_info.json" --checkpoint="$checkpoint" \

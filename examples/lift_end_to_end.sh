@@ -19,12 +19,12 @@ start=$SECONDS
 
 echo "== 1/4 recording $demos scripted Lift demonstrations (robosuite 1.5, privileged cube pose, action noise 0.05)"
 mkdir -p "$out"
-"$bin/pacdp-scripted-demos" --task lift --num-demos "$demos" --seed 0 --action-noise 0.05 \
-  --output "$out/lift_scripted.hdf5" --overwrite
+"$bin/pacdp-scripted-demos" --task=lift --num_demos="$demos" --seed=0 --action_noise=0.05 \
+  --output="$out/lift_scripted.hdf5" --overwrite=true
 
 echo "== 2/4 converting them into a LeRobotDataset ($out/data)"
-"$bin/pacdp-convert-robomimic" --hdf5 "$out/lift_scripted.hdf5" --output-root "$out/data" \
-  --repo-id local/robomimic_lift_scripted --overwrite
+"$bin/pacdp-convert-robomimic" --hdf5="$out/lift_scripted.hdf5" --output_root="$out/data" \
+  --repo_id=local/robomimic_lift_scripted --overwrite=true
 
 echo "== 3/4 training PAC-DP with lerobot-train ($config${STEPS:+, $STEPS steps}; 10% of the demos held out)"
 rm -rf "$out/train"

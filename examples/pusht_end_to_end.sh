@@ -22,7 +22,7 @@ start=$SECONDS
 if [ -e "$source" ]; then
   export HF_HUB_OFFLINE=1
   echo "== 1/3 converting PushT demos $episodes from $source"
-  "$bin/pacdp-convert-pusht" --zarr "$source" --output-root "$out/data" --episodes "$episodes" --overwrite
+  "$bin/pacdp-convert-pusht" --zarr="$source" --output_root="$out/data" --episodes="$episodes" --overwrite=true
   dataset=(--dataset.repo_id=local/pusht --dataset.root="$out/data")
 else
   echo "== 1/3 using hub dataset $source, demos $episodes"

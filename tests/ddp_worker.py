@@ -12,6 +12,7 @@ from accelerate import Accelerator
 from accelerate.utils import DistributedDataParallelKwargs
 
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
+
 from pacdp_testing import random_batch, tiny_config
 
 STEPS = 3

@@ -3,7 +3,8 @@ import math
 import pytest
 import torch
 from torch import nn
-from torch.distributions import Normal, kl_divergence as torch_kl
+from torch.distributions import Normal
+from torch.distributions import kl_divergence as torch_kl
 from torch.utils.checkpoint import checkpoint
 
 from lerobot_pacdp.bayesian_layers import (

@@ -13,6 +13,7 @@ from lerobot_pacdp.certification import (
     tensor_differences,
 )
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
+
 from pacdp_testing import random_batch, tiny_config
 
 

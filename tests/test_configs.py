@@ -36,3 +36,22 @@ def test_paper_configs_train_on_copy_padded_actions_as_chis_code_does(path):
     config = draccus.parse(config_class=TrainPipelineConfig, config_path=path, args=[])
     assert config.policy.do_mask_loss_for_padding is False and config.policy.use_ema
     assert config.policy.noise_scheduler_type == "DDIM" and config.policy.num_inference_steps == 10
+
+
+def test_the_config_files_are_package_data_and_the_checkouts_configs_links_to_them():
+    """An installed package (not only an editable checkout) finds them: the study presets read them from it."""
+    import fnmatch
+    import tomllib
+
+    from lerobot_pacdp.cli_errors import UserInputError
+    from lerobot_pacdp.config_files import CONFIGS_DIR, config_file, load_config_file
+
+    root = Path(__file__).parents[1]
+    assert Path(lerobot_pacdp.__file__).parent / "configs" == CONFIGS_DIR
+    assert (root / "configs").resolve() == CONFIGS_DIR.resolve()
+    globs = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["lerobot_pacdp"]
+    shipped = sorted(p.relative_to(CONFIGS_DIR.parent).as_posix() for p in CONFIGS_DIR.rglob("*.json"))
+    assert len(shipped) == len(CONFIGS) and all(any(fnmatch.fnmatch(p, g) for g in globs) for p in shipped)
+    assert load_config_file("pusht/pacdp_cpu.json")["policy"]["type"] == "pacdp"
+    with pytest.raises(UserInputError, match="missing from the installed package"):
+        config_file("pusht/nope.json")

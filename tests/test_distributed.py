@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
+
 from pacdp_testing import random_batch, tiny_config
 
 TESTS_DIR = Path(__file__).parent

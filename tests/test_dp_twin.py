@@ -37,6 +37,25 @@ def test_one_training_step_equals_lerobots_diffusion_with_the_equivalent_config_
     assert [id(p) for p in groups[0]["params"]] == [id(p) for p in params[0].values()]
 
 
+def test_pacdp_config_and_its_diffusion_twin_convert_both_ways_keeping_every_shared_field():
+    from dataclasses import fields
+
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+
+    from lerobot_pacdp.configuration_pacdp import PacdpConfig
+
+    config = tiny_config(kl_weight=3e-3, prior_rho=-3.0, horizon=8, noise_scheduler_type="DDPM")
+    twin = config.diffusion_twin()
+    assert type(twin) is DiffusionConfig
+    shared = [f.name for f in fields(DiffusionConfig) if f.init]
+    assert all(getattr(twin, name) == getattr(config, name) for name in shared)
+    back = PacdpConfig.from_diffusion(twin, kl_weight=5e-5)
+    assert all(getattr(back, name) == getattr(config, name) for name in shared)
+    assert back.kl_weight == 5e-5 and back.prior_rho == PacdpConfig().prior_rho  # a diffusion config has none
+    again = PacdpConfig.from_diffusion(config)  # a pacdp config keeps its PAC-Bayes fields
+    assert (again.kl_weight, again.prior_rho) == (3e-3, -3.0)
+
+
 def test_the_twin_logs_its_denoising_loss_and_trains_with_ema_by_default():
     policy = PacdpPolicy(tiny_config(bayesian=False))
     policy.train()

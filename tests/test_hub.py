@@ -9,6 +9,7 @@ from lerobot.configs.train import TrainPipelineConfig
 from lerobot.policies.factory import make_pre_post_processors
 
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
+
 from pacdp_testing import LocalHub, install_into_hf_cache, make_tiny_dataset, tiny_config
 
 REPO_ID = "someone/pacdp_tiny"

@@ -12,6 +12,7 @@ from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 
 from lerobot_pacdp import train_hooks
 from lerobot_pacdp.in_memory_data import InMemoryStateDataset
+
 from pacdp_testing import make_tiny_dataset, tiny_config
 
 EPISODE_LENGTHS = [12, 5, 9, 20, 3]

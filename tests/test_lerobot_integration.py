@@ -13,6 +13,7 @@ from lerobot.policies.factory import get_policy_class, make_policy, make_pre_pos
 
 from lerobot_pacdp.configuration_pacdp import PacdpConfig
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
+
 from pacdp_testing import make_tiny_dataset
 
 

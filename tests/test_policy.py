@@ -115,7 +115,7 @@ def test_optimizer_groups_exempt_rho_from_weight_decay():
     policy = _policy()
     groups = policy.get_optim_params()
     assert groups[1]["weight_decay"] == 0.0
-    assert all(p.shape == q.shape for p, q in zip(groups[1]["params"], groups[1]["params"]))
+    assert all(p.shape == q.shape for p, q in zip(groups[1]["params"], groups[1]["params"], strict=True))
     names = {id(p): n for n, p in policy.named_parameters()}
     assert all(names[id(p)].endswith("_rho") for p in groups[1]["params"])
     assert not any(names[id(p)].endswith("_rho") for p in groups[0]["params"])

@@ -23,6 +23,7 @@ from lerobot_pacdp.datasets.pusht_zarr import (
     main,
 )
 from lerobot_pacdp.episodes import EpisodeSelectionError, parse_episodes
+
 from pacdp_testing import PUSHT_ZARR
 
 # agent x, y, block x, y, angle; the agent is kept clear of the block so the reset's physics step cannot push it.
@@ -266,15 +267,30 @@ def test_parse_episodes():
 
 
 def test_cli_bad_input_exits_2_with_a_message(tmp_path, capsys):
-    assert main(["--zarr", str(tmp_path / "nowhere.zarr"), "--output-root", str(tmp_path / "out")]) == 2
+    assert main([f"--zarr={tmp_path / 'nowhere.zarr'}", f"--output_root={tmp_path / 'out'}"]) == 2
     err = capsys.readouterr().err
     assert "does not exist" in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
 
 
+def test_cli_takes_lists_in_lerobots_syntax_and_the_old_argparse_spellings(tiny_zarr, tmp_path, capsys, monkeypatch):
+    assert main([f"--zarr={tiny_zarr}", f"--output_root={tmp_path / 'a'}", "--episodes=[1]"]) == 0
+    assert load(tmp_path / "a", monkeypatch).num_episodes == 1
+    old = ["--zarr", str(tiny_zarr), "--output-root", str(tmp_path / "a"), "--episodes", "0-1", "--overwrite"]
+    assert main(old) == 0
+    assert load(tmp_path / "a", monkeypatch).num_episodes == 2
+
+
+def test_cli_without_its_paths_names_both_flags(tmp_path, capsys):
+    assert main([f"--output_root={tmp_path / 'out'}"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("pacdp-convert-pusht: error: pass --zarr=<pusht_cchi_v7_replay.zarr> and --output_root=")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_cli_converts_and_says_how_to_train(tiny_zarr, tmp_path, capsys, monkeypatch):
     out = tmp_path / "out"
-    assert main(["--zarr", str(tiny_zarr), "--output-root", str(out), "--episodes", "1"]) == 0
+    assert main([f"--zarr={tiny_zarr}", f"--output_root={out}", "--episodes=1"]) == 0
     printed = capsys.readouterr().out
     assert str(out) in printed and f"--dataset.root={out}" in printed
     assert load(out, monkeypatch).num_episodes == 1
@@ -305,12 +321,12 @@ def test_cli_refuses_a_nan_action_naming_episode_key_and_index(tiny_zarr, tmp_pa
     action[5, 1] = np.nan  # episode 1 spans rows 3-6, so this is its frame 2
     group["data/action"][...] = action
 
-    status, err = run_cli(["--zarr", tiny_zarr, "--output-root", tmp_path / "out"], capsys)
+    status, err = run_cli([f"--zarr={tiny_zarr}", f"--output_root={tmp_path / 'out'}"], capsys)
     assert status == 2
     assert "data/action[5, 1] is nan (episode 1, frame 2" in err and "--episodes" in err
     assert no_leftovers(tmp_path) == ["tiny.zarr"]
     # the damaged episode can be left out
-    assert run_cli(["--zarr", tiny_zarr, "--output-root", tmp_path / "out", "--episodes", "0"], capsys)[0] == 0
+    assert run_cli([f"--zarr={tiny_zarr}", f"--output_root={tmp_path / 'out'}", "--episodes=0"], capsys)[0] == 0
 
 
 def test_cli_refuses_an_infinite_state(tiny_zarr, tmp_path, capsys):
@@ -318,14 +334,14 @@ def test_cli_refuses_an_infinite_state(tiny_zarr, tmp_path, capsys):
     state = group["data/state"][...]
     state[1, 3] = -np.inf
     group["data/state"][...] = state
-    status, err = run_cli(["--zarr", tiny_zarr, "--output-root", tmp_path / "out"], capsys)
+    status, err = run_cli([f"--zarr={tiny_zarr}", f"--output_root={tmp_path / 'out'}"], capsys)
     assert status == 2 and "data/state[1, 3] is -inf (episode 0, frame 1" in err
     assert no_leftovers(tmp_path) == ["tiny.zarr"]
 
 
 def test_cli_refuses_a_replay_buffer_with_a_missing_chunk_file(copied_pusht, tmp_path, capsys):
     (copied_pusht / "data" / "action" / "5.0").unlink()  # zarr would read its 161 frames as (0, 0)
-    status, err = run_cli(["--zarr", copied_pusht, "--output-root", tmp_path / "out"], capsys)
+    status, err = run_cli([f"--zarr={copied_pusht}", f"--output_root={tmp_path / 'out'}"], capsys)
     assert status == 2
     assert "chunk file data/action/5.0 is missing" in err and "rows 805-965" in err and "copy the replay buffer" in err
     assert no_leftovers(tmp_path) == ["pusht.zarr"]
@@ -338,8 +354,8 @@ def test_cli_names_a_garbled_chunk_without_pages_of_asyncio_noise(copied_pusht, 
     chunk = copied_pusht / "data" / "state" / "7.0"
     chunk.write_bytes(chunk.read_bytes()[:16] + bytes(64) + chunk.read_bytes()[80:])
     result = subprocess.run(
-        [sys.executable, "-m", "lerobot_pacdp.datasets.pusht_zarr", "--zarr", str(copied_pusht),
-         "--output-root", str(tmp_path / "out")],
+        [sys.executable, "-m", "lerobot_pacdp.datasets.pusht_zarr", f"--zarr={copied_pusht}",
+         f"--output_root={tmp_path / 'out'}"],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert result.returncode == 2
@@ -351,7 +367,7 @@ def test_cli_names_a_garbled_chunk_without_pages_of_asyncio_noise(copied_pusht, 
 
 def test_cli_refuses_a_broken_zarray_file(copied_pusht, tmp_path, capsys):
     (copied_pusht / "data" / "action" / ".zarray").write_text('{"chunks": [161, 2], "comp')
-    status, err = run_cli(["--zarr", copied_pusht, "--output-root", tmp_path / "out"], capsys)
+    status, err = run_cli([f"--zarr={copied_pusht}", f"--output_root={tmp_path / 'out'}"], capsys)
     assert status == 2 and "a .zarray file) is damaged (JSONDecodeError" in err
     assert no_leftovers(tmp_path) == ["pusht.zarr"]
 
@@ -361,7 +377,7 @@ def test_cli_refuses_a_broken_zarray_file(copied_pusht, tmp_path, capsys):
 )
 def test_cli_overwrite_never_deletes_the_input(tiny_zarr, tmp_path, capsys, output, relation):
     before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
-    status, err = run_cli(["--zarr", tiny_zarr, "--output-root", tiny_zarr / output, "--overwrite"], capsys)
+    status, err = run_cli([f"--zarr={tiny_zarr}", f"--output_root={tiny_zarr / output}", "--overwrite=true"], capsys)
     assert status == 2 and f"{relation} the input" in err and "outside the input" in err
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
     assert pusht_zarr.load_replay_buffer(tiny_zarr).num_episodes == 2
@@ -376,7 +392,7 @@ def test_cli_overwrite_never_deletes_the_input(tiny_zarr, tmp_path, capsys, outp
     ],
 )
 def test_cli_refuses_bad_episode_selections_before_expanding_them(tiny_zarr, tmp_path, capsys, spec, message):
-    status, err = run_cli(["--zarr", tiny_zarr, "--output-root", tmp_path / "out", "--episodes", spec], capsys)
+    status, err = run_cli([f"--zarr={tiny_zarr}", f"--output_root={tmp_path / 'out'}", f"--episodes={spec}"], capsys)
     assert status == 2 and message in err
     assert no_leftovers(tmp_path) == ["tiny.zarr"]
 
@@ -396,7 +412,7 @@ def test_cli_reports_a_full_disk_in_one_line_and_leaves_nothing(tiny_zarr, tmp_p
         raise OSError(errno.ENOSPC, "No space left on device", str(self.root / "data"))
 
     monkeypatch.setattr(LeRobotDataset, "save_episode", disk_full)
-    status, err = run_cli(["--zarr", tiny_zarr, "--output-root", tmp_path / "out"], capsys)
+    status, err = run_cli([f"--zarr={tiny_zarr}", f"--output_root={tmp_path / 'out'}"], capsys)
     assert status == 2 and "no space left on the device" in err and "free some space" in err
     assert no_leftovers(tmp_path) == ["tiny.zarr"]
 
@@ -408,7 +424,7 @@ def test_cli_leaves_nothing_when_interrupted(tiny_zarr, tmp_path, capsys, monkey
         raise KeyboardInterrupt
 
     monkeypatch.setattr(LeRobotDataset, "save_episode", interrupt)
-    assert main(["--zarr", str(tiny_zarr), "--output-root", str(tmp_path / "out")]) == 130
+    assert main([f"--zarr={tiny_zarr}", f"--output_root={tmp_path / 'out'}"]) == 130
     last_line = capsys.readouterr().err.strip().splitlines()[-1]
     assert last_line == "pacdp-convert-pusht: error: interrupted; nothing was written."
     assert no_leftovers(tmp_path) == ["tiny.zarr"]
@@ -436,6 +452,6 @@ def test_cli_refuses_the_zip_file_itself_and_says_to_unzip_it(tmp_path, capsys):
 
     with zipfile.ZipFile(tmp_path / "pusht.zip", "w") as archive:
         archive.writestr("pusht/pusht_cchi_v7_replay.zarr/.zgroup", '{"zarr_format": 2}')
-    status, err = run_cli(["--zarr", tmp_path / "pusht.zip", "--output-root", tmp_path / "out"], capsys)
+    status, err = run_cli([f"--zarr={tmp_path / 'pusht.zip'}", f"--output_root={tmp_path / 'out'}"], capsys)
     assert status == 2 and "pusht.zip is a file" in err and "unzip pusht.zip" in err
     assert no_leftovers(tmp_path) == ["pusht.zip"]

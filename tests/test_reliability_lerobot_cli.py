@@ -15,6 +15,7 @@ from lerobot.policies.factory import make_pre_post_processors
 
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
 from lerobot_pacdp.robomimic.checkpoint_fit import check_checkpoint_fits_env
+
 from pacdp_testing import tiny_config
 
 BAD_POLICY_FLAGS = [  # (flag, the field and the value the message must name)

@@ -15,7 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from lerobot_pacdp.run_recovery import checkpoint_problem, main
+from lerobot_pacdp.run_recovery import main
+from lerobot_pacdp.train_runs import checkpoint_problem
+
 from pacdp_testing import make_tiny_dataset
 
 BIN = Path(sys.executable).parent

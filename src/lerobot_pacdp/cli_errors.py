@@ -1,8 +1,8 @@
 """How a bad input reaches a user: one line naming the problem and the fix, never a traceback.
 
-`UserInputError` is the one base class of this package's user-facing errors; `report_user_errors` is
-the one place a `pacdp-*` command turns it (and a full disk, a denied write, Ctrl-C) into one line and
-an exit status. `name_plugin_config_errors` does the same for LeRobot's own CLIs (lerobot-train,
+`UserInputError` is the one base class of this package's user-facing errors; `run_draccus_cli` parses the
+flags of every `pacdp-*` command, and `report_user_errors` is the one place such a command turns that error
+(and a full disk, a denied write, Ctrl-C) into one line and an exit status. `name_plugin_config_errors` does the same for LeRobot's own CLIs (lerobot-train,
 lerobot-eval), whose config parser, draccus, replaces the message of any error raised while building a
 config with "Couldn't instantiate class PacdpConfig using the given arguments".
 """
@@ -11,12 +11,10 @@ import errno
 import functools
 import sys
 from collections.abc import Callable, Sequence
-from typing import TypeVar
 
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130  # the shell's status for a command stopped by SIGINT
 _PACKAGE = __name__.rpartition(".")[0]
-T = TypeVar("T")
 
 
 class UserInputError(ValueError):
@@ -53,17 +51,38 @@ def report_user_errors(prog: str, body: Callable[[], int]) -> int:
         return EXIT_INTERRUPTED
 
 
-def run_draccus_cli(prog: str, config_class: type[T], body: Callable[[T], int], argv: Sequence[str] | None) -> int:
-    """Parse `argv` into `config_class` with draccus (the flag style of LeRobot's own CLIs), run `body` on
-    it, and report errors as `report_user_errors` does; a flag draccus cannot decode is one too."""
+def draccus_spelling(argv: Sequence[str]) -> list[str]:
+    """`argv` with argparse spellings turned into draccus' (`--output-root X` -> `--output_root=X`, a bare
+    `--overwrite` -> `--overwrite=true`), so the converters' old command lines keep working."""
+    args, spelled = list(argv), []
+    while args:
+        arg = args.pop(0)
+        if not arg.startswith("--") or arg == "--help":
+            spelled.append(arg)
+            continue
+        name, has_value, value = arg[2:].partition("=")
+        if not has_value:
+            value = args.pop(0) if args and not args[0].startswith("--") else "true"
+        spelled.append(f"--{name.replace('-', '_')}={value}")
+    return spelled
+
+
+def run_draccus_cli[T](prog: str, config_class: type[T], body: Callable[[T], int], argv: Sequence[str] | None) -> int:
+    """Parse `argv` into `config_class` with draccus (the flag style of LeRobot's own CLIs: `--flag=value`,
+    lists as `--flag=[a,b]`), run `body` on it, and report errors as `report_user_errors` does; a flag
+    draccus cannot decode is one too."""
     import draccus
     from draccus.utils import ParsingError
 
     def parse_and_run() -> int:
+        args = draccus_spelling(sys.argv[1:] if argv is None else argv)
         try:
-            cfg = draccus.parse(config_class, args=list(sys.argv[1:] if argv is None else argv), prog=prog)
+            cfg = draccus.parse(config_class, args=args, prog=prog)
         except ParsingError as exc:
-            raise UserInputError(str(exc).replace("\n", " ")) from None
+            message = str(exc).replace("\n", " ")
+            if "valid input for a list type" in message:
+                message += " Write a list in brackets, as LeRobot's CLIs do: --flag=[a,b] (one item: --flag=[a])."
+            raise UserInputError(message) from None
         return body(cfg)
 
     return report_user_errors(prog, parse_and_run)

@@ -133,3 +133,11 @@ class PacdpConfig(DiffusionConfig):
         """LeRobot's `diffusion` config with every shared field equal to this one (no EMA, no Bayesian layers)."""
         shared = {f.name: getattr(self, f.name) for f in fields(DiffusionConfig) if f.init}
         return DiffusionConfig(**copy.deepcopy(shared))
+
+    @classmethod
+    def from_diffusion(cls, config: DiffusionConfig, **changes) -> "PacdpConfig":
+        """The inverse of `diffusion_twin`: every field `config` (a `diffusion` or `pacdp` config) shares with
+        PacdpConfig, the PAC-Bayes fields of a `pacdp` one included, then `changes`."""
+        own = {f.name for f in fields(cls) if f.init}
+        shared = {f.name: getattr(config, f.name) for f in fields(config) if f.init and f.name in own}
+        return cls(**(copy.deepcopy(shared) | changes))

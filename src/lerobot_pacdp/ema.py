@@ -27,7 +27,7 @@ def ema_decay(step: int, power: float, max_decay: float) -> float:
 def update_ema(averaged: nn.Module, trained: nn.Module, decay: float) -> None:
     """One EMA step of `averaged` (a copy of `trained` with the same structure) towards `trained`."""
     ema_params, new_params, copied, sources = [], [], [], []
-    for (name, ema), (_, new) in zip(averaged.named_parameters(), trained.named_parameters(), strict=True):
+    for (_, ema), (_, new) in zip(averaged.named_parameters(), trained.named_parameters(), strict=True):
         if new.requires_grad:
             ema_params.append(ema)
             new_params.append(new)

@@ -1,6 +1,9 @@
-"""Episode selections written the way people type them ("0-19", "0,1,2", "0-4,10"), for every CLI here."""
+"""Episode selections for every CLI here: LeRobot's list syntax (`[0,1,2]`) or a range ("0-19", "0-4,10")."""
 
 from lerobot_pacdp.cli_errors import UserInputError
+
+# A CLI field of this type takes `--episodes=[0,1,2]` (draccus decodes a list) or `--episodes=0-19`.
+EpisodeSelection = list[int] | str
 
 # More episodes than any LeRobot dataset holds: a typo such as 0-30000000 is refused before it is
 # expanded into a list that does not fit in memory.
@@ -38,3 +41,10 @@ def parse_episodes(spec: str, num_episodes: int | None = None) -> list[int]:
             raise EpisodeSelectionError(f"episode selection {part.strip()!r} is out of range: {available}.")
         bounds.append((start, stop))
     return [index for start, stop in bounds for index in range(start, stop + 1)]
+
+
+def selected_episodes(selection: EpisodeSelection, num_episodes: int | None = None) -> list[int]:
+    """The episode indices of a CLI selection: a list as given, a range parsed ("" selects none)."""
+    if isinstance(selection, str):
+        return parse_episodes(selection, num_episodes) if selection.strip() else []
+    return parse_episodes(",".join(str(int(e)) for e in selection), num_episodes) if selection else []

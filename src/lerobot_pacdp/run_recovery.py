@@ -17,80 +17,20 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from lerobot_pacdp.cli_errors import UserInputError, run_draccus_cli
+from lerobot_pacdp.train_runs import (
+    CHECKPOINTS_DIR,
+    LAST_LINK,
+    TRAINING_STATE_DIR,
+    checkpoint_problem,
+    resume_arguments,
+    step_dirs,
+)
 
-CHECKPOINTS_DIR = "checkpoints"
-LAST_LINK = "last"
-PRETRAINED_DIR = "pretrained_model"
-TRAINING_STATE_DIR = "training_state"
 INCOMPLETE_DIR = "incomplete_checkpoints"
-PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
 # An incomplete checkpoint touched more recently than this may belong to a run that is still saving it.
 RECENT_WRITE_S = 60
-
-
-def _json_problem(path: Path) -> str | None:
-    if not path.is_file():
-        return "missing"
-    try:
-        json.loads(path.read_text())
-    except (OSError, ValueError):
-        return "not valid JSON (cut off mid-write?)"
-    return None
-
-
-def _read_json(path: Path) -> Any:
-    return None if _json_problem(path) else json.loads(path.read_text())
-
-
-def _safetensors_problem(path: Path) -> str | None:
-    """None if the file is as long as its own header says (safetensors: 8-byte header size, JSON header, data)."""
-    if not path.is_file():
-        return "missing"
-    try:
-        with path.open("rb") as f:
-            header_size = int.from_bytes(f.read(8), "little")
-            header = json.loads(f.read(header_size))
-        data_end = max((t["data_offsets"][1] for k, t in header.items() if k != "__metadata__"), default=0)
-    except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError):
-        return "unreadable (cut off mid-write?)"
-    expected, size = 8 + header_size + data_end, path.stat().st_size
-    return None if size == expected else f"truncated ({size} of {expected} bytes)"
-
-
-def checkpoint_problem(step_dir: Path) -> str | None:
-    """What keeps a numbered lerobot-train checkpoint from being resumed or evaluated (None: complete).
-
-    Every file LeRobot's `save_checkpoint` writes is checked, in the order it writes them.
-    """
-    pretrained, state = step_dir / PRETRAINED_DIR, step_dir / TRAINING_STATE_DIR
-    missing_dirs = [f"{d.name}/ is missing" for d in (pretrained, state) if not d.is_dir()]
-    if missing_dirs:
-        return "; ".join(missing_dirs)
-    checks = [
-        (pretrained / "config.json", _json_problem),
-        (pretrained / "model.safetensors", _safetensors_problem),
-        (pretrained / "train_config.json", _json_problem),
-    ]
-    for name in PROCESSOR_FILES:
-        checks.append((pretrained / name, _json_problem))
-        processor = _read_json(pretrained / name)
-        steps = processor.get("steps", []) if isinstance(processor, dict) else []
-        state_files = [s["state_file"] for s in steps if isinstance(s, dict) and s.get("state_file")]
-        checks += [(pretrained / state_file, _safetensors_problem) for state_file in state_files]
-    checks += [
-        (state / "training_step.json", _json_problem),
-        (state / "rng_state.safetensors", _safetensors_problem),
-        (state / "optimizer_param_groups.json", _json_problem),
-        (state / "optimizer_state.safetensors", _safetensors_problem),
-    ]
-    train_config = _read_json(pretrained / "train_config.json")
-    if isinstance(train_config, dict) and train_config.get("scheduler"):
-        checks.append((state / "scheduler_state.json", _json_problem))
-    problems = [f"{path.relative_to(step_dir)} is {problem}" for path, check in checks if (problem := check(path))]
-    return "; ".join(problems) or None
 
 
 @dataclass(frozen=True)
@@ -103,10 +43,6 @@ class Recovery:
     set_aside: tuple[tuple[Path, str], ...]  # (new location, problem) of each incomplete checkpoint moved
 
 
-def _step_dirs(checkpoints: Path) -> list[Path]:
-    return sorted((d for d in checkpoints.iterdir() if d.name.isdigit() and d.is_dir()), key=lambda d: int(d.name))
-
-
 def recover_run(output_dir: str | Path) -> Recovery:
     """Point `checkpoints/last` at the newest complete checkpoint and move incomplete ones aside."""
     output_dir = Path(output_dir).expanduser()
@@ -117,7 +53,7 @@ def recover_run(output_dir: str | Path) -> Recovery:
             f"or the run died before its first checkpoint and there is nothing to resume (remove {output_dir} "
             "and start the run again)."
         )
-    found = [(d, checkpoint_problem(d)) for d in _step_dirs(checkpoints)]
+    found = [(d, checkpoint_problem(d)) for d in step_dirs(output_dir)]
     complete = [d for d, problem in found if problem is None]
     if not complete:
         details = "; ".join(f"{d.name}: {problem}" for d, problem in found) or "there are none"
@@ -157,8 +93,7 @@ def recover_run(output_dir: str | Path) -> Recovery:
 
 
 def resume_command(output_dir: Path) -> str:
-    config = output_dir / CHECKPOINTS_DIR / LAST_LINK / PRETRAINED_DIR / "train_config.json"
-    return f"lerobot-train --config_path={config} --resume=true"
+    return " ".join(["lerobot-train", *resume_arguments(output_dir)])
 
 
 @dataclass

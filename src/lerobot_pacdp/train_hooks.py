@@ -132,7 +132,12 @@ def _one_line_errors(train: Callable) -> Callable:
     """`train` with this plugin's own stops (bad input, a non-finite step, a config value it refuses after
     parsing, e.g. `--policy.path=X --policy.kl_weight=-1`) printed as one `lerobot-train: error:` line and
     exit status 2, instead of a traceback through LeRobot."""
-    from lerobot_pacdp.cli_errors import EXIT_USER_ERROR, UserInputError, plugin_config_error, raised_in_this_package
+    from lerobot_pacdp.cli_errors import (
+        EXIT_USER_ERROR,
+        UserInputError,
+        plugin_config_error,
+        raised_in_this_package,
+    )
     from lerobot_pacdp.modeling_pacdp import NonFiniteTrainingError
 
     @functools.wraps(train)

@@ -12,6 +12,7 @@ from lerobot.policies.factory import make_pre_post_processors
 
 from lerobot_pacdp.certification import deterministic_tensors
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
+
 from pacdp_testing import tiny_config, tiny_features
 
 REPO_ID = "local/tiny"

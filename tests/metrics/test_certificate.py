@@ -31,6 +31,7 @@ from lerobot_pacdp.metrics.noise_prediction import (
     noise_prediction_errors,
     policy_denoiser,
 )
+
 from metrics_testing import REPO_ID
 
 

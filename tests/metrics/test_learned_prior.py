@@ -15,8 +15,13 @@ from safetensors.torch import load_file, save_file
 from lerobot_pacdp.bayesian_layers import bayesian_layers, kl_divergence
 from lerobot_pacdp.metrics import certificate
 from lerobot_pacdp.metrics.checkpoints import MetricsError, load_policy
-from lerobot_pacdp.metrics.learned_prior import PROVENANCE_FILE, build_learned_prior, check_disjoint_from_prior
+from lerobot_pacdp.metrics.learned_prior import (
+    PROVENANCE_FILE,
+    build_learned_prior,
+    check_disjoint_from_prior,
+)
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
+
 from metrics_testing import REPO_ID, diffusion_config, perturb, save_checkpoint
 from pacdp_testing import random_batch
 

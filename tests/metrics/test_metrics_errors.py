@@ -57,7 +57,7 @@ def test_missing_checkpoint(tmp_path, capsys):
         list_checkpoints(tmp_path)
     _cli_fails(
         sweep.main,
-        [f"--runs={tmp_path / 'nope'}", f"--output_dir={tmp_path / 'out'}"],
+        [f"--runs=[{tmp_path / 'nope'}]", f"--output_dir={tmp_path / 'out'}"],
         capsys,
         "pacdp-metrics: error:",
         "checkpoints",
@@ -96,7 +96,7 @@ def test_dataset_that_does_not_match_the_policy(tiny_runs, tiny_dataset, wrong_d
     with pytest.raises(DatasetMismatchError, match=r"has 6 episodes; episodes \[7\] do not exist"):
         EvaluationData(loaded.policy.config, "local/tiny", tiny_dataset.root, [0, 7])
     argv = [
-        f"--runs={tiny_runs['pacdp_s0']}",
+        f"--runs=[{tiny_runs['pacdp_s0']}]",
         "--dataset.repo_id=local/wrong",
         f"--dataset.root={wrong_dataset.root}",
         "--episodes=0",
@@ -118,7 +118,7 @@ def test_a_truncated_checkpoint_is_one_line_and_leaves_no_output(tiny_runs, tmp_
     weights = run / "checkpoints" / "000100" / "pretrained_model" / "model.safetensors"
     weights.write_bytes(weights.read_bytes()[:1000])  # a run killed while writing its first checkpoint
     out = tmp_path / "metrics"
-    _cli_fails(sweep.main, [f"--runs={run}", f"--output_dir={out}", "--nll=false"], capsys,
+    _cli_fails(sweep.main, [f"--runs=[{run}]", f"--output_dir={out}", "--nll=false"], capsys,
                "pacdp-metrics: error: cannot load the checkpoint", "000100", "truncated")  # fmt: skip
     assert not out.exists()
     cert = tmp_path / "cert.json"

@@ -15,6 +15,7 @@ from lerobot_pacdp.metrics.comparison import paired_npe_difference
 from lerobot_pacdp.metrics.data import EvaluationData
 from lerobot_pacdp.metrics.nll_bound import GaussianBaseline
 from lerobot_pacdp.metrics.noise_prediction import alphas_cumprod, noise_prediction_errors, policy_denoiser
+
 from metrics_testing import REPO_ID, STEPS
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -25,7 +26,7 @@ def swept(tiny_runs, tiny_dataset, tmp_path_factory):
     out = tmp_path_factory.mktemp("metrics")
     runs = ",".join(str(tiny_runs[name]) for name in ("pacdp_s0", "pacdp_s1", "bdp_s0", "dp_s0"))
     data = [f"--dataset.repo_id={REPO_ID}", f"--dataset.root={tiny_dataset.root}", "--episodes=3-5"]
-    argv = [f"--runs={runs}", f"--output_dir={out}", *data, "--nll_steps=8", "--batch_size=32", "--last_k=2"]
+    argv = [f"--runs=[{runs}]", f"--output_dir={out}", *data, "--nll_steps=8", "--batch_size=32", "--last_k=2"]
     assert sweep.main(argv) == 0
     return out, argv
 
@@ -86,7 +87,7 @@ def test_resume_reuses_stored_rows_and_labels_group_runs(swept, tiny_runs, monke
     out, argv = swept
     monkeypatch.setattr(sweep, "load_policy", lambda *a, **k: pytest.fail("a stored checkpoint was re-evaluated"))
     runs = f"{tiny_runs['pacdp_s0']},{tiny_runs['bdp_s0']}"
-    assert sweep.main([f"--runs={runs}", "--labels=mine,mine", *argv[1:]]) == 0
+    assert sweep.main([f"--runs=[{runs}]", "--labels=[mine,mine]", *argv[1:]]) == 0
     summary = json.loads((out / "summary.json").read_text())["methods"]
     assert list(summary) == ["mine"] and summary["mine"]["runs"] == 2
     assert "mine (2 runs)" in capsys.readouterr().out
@@ -97,7 +98,7 @@ def test_a_single_checkpoint_is_a_run_of_one_on_the_same_draws(swept, tiny_runs,
     step_dir = tiny_runs["pacdp_s0"] / "checkpoints" / f"{STEPS[-1]:06d}"
     assert sweep.list_checkpoints(step_dir) == [(STEPS[-1], step_dir / "pretrained_model")]
     single = tmp_path / "single"
-    assert sweep.main([f"--runs={step_dir / 'pretrained_model'}", f"--output_dir={single}", *argv[2:]]) == 0
+    assert sweep.main([f"--runs=[{step_dir / 'pretrained_model'}]", f"--output_dir={single}", *argv[2:]]) == 0
     [row] = json.loads((single / "metrics.json").read_text())["rows"]
     [full] = [r for r in json.loads((out / "metrics.json").read_text())["rows"] if r["checkpoint"] == row["checkpoint"]]
     assert row["step"] == STEPS[-1] and row["npe"] == full["npe"] and row["nll_bound"] == full["nll_bound"]
@@ -131,7 +132,7 @@ def test_success_rate_through_lerobots_eval_loop(tiny_runs, tmp_path, monkeypatc
     make_env = lerobot.envs.factory.make_env
     monkeypatch.setattr(lerobot.envs.factory, "make_env", lambda *a, **k: made.append(1) or make_env(*a, **k))
     argv = [
-        f"--runs={tiny_runs['pacdp_s1']}",
+        f"--runs=[{tiny_runs['pacdp_s1']}]",
         f"--output_dir={tmp_path}",
         "--nll=false",
         "--env.type=pusht",
@@ -189,7 +190,7 @@ def test_paired_npe_difference_of_two_checkpoints_equals_the_per_window_computat
 
 def test_with_every_diffusion_step_the_row_has_the_paper_compatible_value(tiny_runs, tiny_dataset, tmp_path):
     checkpoint = tiny_runs["pacdp_s1"] / "checkpoints" / "000300"
-    argv = [f"--runs={checkpoint}", f"--output_dir={tmp_path}", f"--dataset.repo_id={REPO_ID}",
+    argv = [f"--runs=[{checkpoint}]", f"--output_dir={tmp_path}", f"--dataset.repo_id={REPO_ID}",
             f"--dataset.root={tiny_dataset.root}", "--episodes=3-5"]  # fmt: skip
     assert sweep.main(argv) == 0
     [row] = json.loads((tmp_path / "metrics.json").read_text())["rows"]

@@ -17,6 +17,7 @@ from lerobot_pacdp.metrics.noise_prediction import (
     policy_denoiser,
 )
 from lerobot_pacdp.metrics.sweep import evaluate_checkpoint
+
 from metrics_testing import EPISODE_LENGTHS, REPO_ID
 
 

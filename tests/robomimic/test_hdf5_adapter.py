@@ -18,6 +18,7 @@ from lerobot_pacdp.robomimic.hdf5_adapter import (
     select_episodes,
 )
 from lerobot_pacdp.robomimic.tasks import TASKS, layout_names
+
 from robomimic_testing import legacy_env_args, write_legacy_file
 
 DP_OBS_DIMS = {"lift": 19, "can": 23, "square": 23, "tool_hang": 53, "transport": 59}
@@ -186,21 +187,21 @@ def test_failure_while_writing_leaves_nothing_and_keeps_a_previous_dataset(tmp_p
 # -- CLI -------------------------------------------------------------------------------------------------
 def test_cli_converts_and_prints_episode_lists(tmp_path, capsys):
     path, _ = write_legacy_file(tmp_path / "square.hdf5", TASKS["square"], num_demos=3, env_version="1.4.1")
-    assert hdf5_adapter.main(["--hdf5", str(path), "--output-root", str(tmp_path / "ds")]) == 0
+    assert hdf5_adapter.main([f"--hdf5={path}", f"--output_root={tmp_path / 'ds'}"]) == 0
     out = capsys.readouterr().out
     assert "Wrote 3 square demos" in out and "--env.robosuite_compat=1.4" in out and "robosuite 1.4.1" in out
-    assert hdf5_adapter.main(["--episodes-of", str(tmp_path / "ds"), "--split", "train", "--first", "2"]) == 0
+    assert hdf5_adapter.main([f"--episodes_of={tmp_path / 'ds'}", "--split=train", "--first=2"]) == 0
     assert capsys.readouterr().out.strip() == "--dataset.episodes=[0,1]"
 
 
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--hdf5", "{missing}", "--output-root", "{out}"], "does not exist"),
-        (["--hdf5", "{notes}", "--output-root", "{out}"], "not an HDF5 file"),
-        (["--output-root", "{out}"], "pass --hdf5 FILE --output-root DIR"),
-        (["--episodes-of", "{out}"], "not a dataset written by pacdp-convert-robomimic"),
-        (["--hdf5", "{lift}", "--output-root", "{out}", "--task", "stack"], "unknown robomimic task"),
+        (["--hdf5={missing}", "--output_root={out}"], "does not exist"),
+        (["--hdf5={notes}", "--output_root={out}"], "not an HDF5 file"),
+        (["--output_root={out}"], "pass --hdf5=FILE --output_root=DIR"),
+        (["--episodes_of={out}"], "not a dataset written by pacdp-convert-robomimic"),
+        (["--hdf5={lift}", "--output_root={out}", "--task=stack"], "unknown robomimic task"),
     ],
 )
 def test_cli_bad_input_exits_2_without_traceback(tmp_path, capsys, argv, message):
@@ -237,7 +238,7 @@ def test_cli_refuses_non_finite_demos_naming_demo_key_and_index(tmp_path, capsys
     path, _ = write_legacy_file(tmp_path / "lift.hdf5", TASKS["lift"], num_demos=3, length=6)
     with h5py.File(path, "a") as f:
         f[f"data/demo_2/{key}"][index] = value
-    err = _cli_error(["--hdf5", path, "--output-root", tmp_path / "out"], capsys)
+    err = _cli_error([f"--hdf5={path}", f"--output_root={tmp_path / 'out'}"], capsys)
     assert f"data/demo_2/{shown} (1 non-finite value(s) in it)" in err and "del f['data/demo_2']" in err
     assert _leftovers(tmp_path, "out") == []
 
@@ -249,7 +250,7 @@ def test_cli_refuses_a_file_with_a_zeroed_region_in_one_line(tmp_path, capsys):
     for fraction in (0.1, 0.3, 0.5, 0.7, 0.9):  # wherever the damage lands: metadata, a group, a dataset
         start = int(len(intact) * fraction)
         path.write_bytes(intact[:start] + bytes(2048) + intact[start + 2048 :])
-        messages.append(_cli_error(["--hdf5", path, "--output-root", tmp_path / "out"], capsys))
+        messages.append(_cli_error([f"--hdf5={path}", f"--output_root={tmp_path / 'out'}"], capsys))
         assert _leftovers(tmp_path, "out") == []
     assert any("is damaged: HDF5 cannot read part of it" in m and "download the file again" in m for m in messages)
 
@@ -261,7 +262,7 @@ def test_cli_overwrite_never_deletes_the_input(tmp_path, capsys, output, relatio
     path, _ = write_legacy_file(tmp_path / "data" / "lift.hdf5", TASKS["lift"], num_demos=2)
     before = path.read_bytes()
     output = output.format(file=path, parent=path.parent)
-    err = _cli_error(["--hdf5", path, "--output-root", output, "--overwrite"], capsys)
+    err = _cli_error([f"--hdf5={path}", f"--output_root={output}", "--overwrite=true"], capsys)
     assert f"{relation} the input" in err and "outside the input" in err
     assert path.read_bytes() == before and sorted(p.name for p in path.parent.iterdir()) == ["lift.hdf5"]
 
@@ -270,7 +271,7 @@ def test_cli_overwrite_refuses_a_directory_that_is_not_a_dataset(tmp_path, capsy
     path, _ = write_legacy_file(tmp_path / "lift.hdf5", TASKS["lift"], num_demos=1)
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "notes.txt").write_text("keep me")
-    err = _cli_error(["--hdf5", path, "--output-root", tmp_path / "out", "--overwrite"], capsys)
+    err = _cli_error([f"--hdf5={path}", f"--output_root={tmp_path / 'out'}", "--overwrite=true"], capsys)
     assert "is not a LeRobotDataset" in err
     assert (tmp_path / "out" / "notes.txt").read_text() == "keep me"
 
@@ -287,14 +288,14 @@ def test_cli_refuses_a_broken_or_foreign_dataset_metadata_file(tmp_path, capsys,
     path, _ = write_legacy_file(tmp_path / "lift.hdf5", TASKS["lift"], num_demos=2)
     root = convert_robomimic_hdf5(path, tmp_path / "ds")
     (root / "meta" / "robomimic.json").write_text(content)
-    err = _cli_error(["--episodes-of", root, "--split", "train"], capsys)
+    err = _cli_error([f"--episodes_of={root}", "--split=train"], capsys)
     assert message in err and "convert the dataset again" in err
 
 
 def test_cli_refuses_a_truncated_download(tmp_path, capsys):
     path, _ = write_legacy_file(tmp_path / "lift.hdf5", TASKS["lift"], num_demos=3)
     path.write_bytes(path.read_bytes()[:20000])
-    err = _cli_error(["--hdf5", path, "--output-root", tmp_path / "out"], capsys)
+    err = _cli_error([f"--hdf5={path}", f"--output_root={tmp_path / 'out'}"], capsys)
     assert "is not an HDF5 file, or a truncated one (" in err and "truncated file: eof = 20000" in err
     assert _leftovers(tmp_path, "out") == []
 
@@ -307,7 +308,7 @@ def test_cli_reports_a_full_disk_in_one_line_and_keeps_the_previous_dataset(tmp_
         raise OSError(errno.ENOSPC, "No space left on device", str(self.root))
 
     monkeypatch.setattr(LeRobotDataset, "save_episode", disk_full)
-    err = _cli_error(["--hdf5", path, "--output-root", root, "--overwrite"], capsys)
+    err = _cli_error([f"--hdf5={path}", f"--output_root={root}", "--overwrite=true"], capsys)
     assert "no space left on the device" in err and "free some space and run the command again" in err
     assert load_metadata(root)["demos"] == ["demo_0"] and _leftovers(tmp_path, "out") == ["out"]
 
@@ -315,6 +316,6 @@ def test_cli_reports_a_full_disk_in_one_line_and_keeps_the_previous_dataset(tmp_
 def test_cli_refuses_a_split_that_lists_demos_the_file_does_not_hold(tmp_path, capsys):
     names = ["demo_0", "demo_1", "demo_7"]
     path, _ = write_legacy_file(tmp_path / "lift.hdf5", TASKS["lift"], num_demos=2, masks={"train": names})
-    err = _cli_error(["--hdf5", path, "--output-root", tmp_path / "out"], capsys)
+    err = _cli_error([f"--hdf5={path}", f"--output_root={tmp_path / 'out'}"], capsys)
     assert "mask/train lists demo_7, which data/ does not hold" in err and "split_train_val_from_hdf5" in err
     assert _leftovers(tmp_path, "out") == []

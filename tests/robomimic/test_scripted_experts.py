@@ -65,7 +65,7 @@ def test_can_and_square_experts_succeed(task, episodes):
 
 def test_cli_writes_a_file_and_reports_the_success_rate(tmp_path, capsys):
     out = tmp_path / "demos.hdf5"
-    argv = ["--task", "lift", "--num-demos", "2", "--output", str(out), "--seed", "1", "--action-noise", "0.02"]
+    argv = ["--task=lift", "--num_demos=2", f"--output={out}", "--seed=1", "--action_noise=0.02"]
     assert scripted_experts.main(argv) == 0
     assert "lift: 2/2 successful episodes (100%)" in capsys.readouterr().out
     with h5py.File(out, "r") as f:
@@ -78,14 +78,16 @@ def test_cli_writes_a_file_and_reports_the_success_rate(tmp_path, capsys):
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--task", "transport", "--num-demos", "1"], "no scripted expert for 'transport'"),
-        (["--task", "stack", "--num-demos", "1"], "unknown robomimic task"),
-        (["--task", "lift", "--num-demos", "0"], "--num-demos must be >= 1"),
-        (["--task", "lift", "--num-demos", "1", "--action-noise", "-1"], "--action-noise must be >= 0"),
+        (["--task=transport", "--num_demos=1"], "no scripted expert for 'transport'"),
+        (["--task=stack", "--num_demos=1"], "unknown robomimic task"),
+        (["--task=lift", "--num_demos=0"], "--num_demos must be >= 1"),
+        (["--task=lift", "--num_demos=1", "--action_noise=-1"], "--action_noise must be >= 0"),
+        (["--task=lift"], "pass --task=<lift|can|square> --num_demos=N --output=FILE.hdf5."),
+        (["--task=lift", "--num_demos=1", "--valid_fraction=1"], "--valid_fraction must be in [0, 1), got 1.0."),
     ],
 )
 def test_cli_bad_input_exits_2(tmp_path, capsys, argv, message):
-    assert scripted_experts.main([*argv, "--output", str(tmp_path / "x.hdf5")]) == 2
+    assert scripted_experts.main([*argv, f"--output={tmp_path / 'x.hdf5'}"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("pacdp-scripted-demos: error:") and message in err and "Traceback" not in err
     assert not (tmp_path / "x.hdf5").exists()

@@ -193,6 +193,21 @@ def test_config_files_agree_with_the_task_table():
         assert json.loads((CONFIG_DIR / name).read_text()) == content, name
 
 
+def test_the_config_generator_is_a_draccus_command_writing_the_packaged_files(tmp_path, capsys):
+    from lerobot_pacdp.config_files import CONFIGS_DIR
+    from lerobot_pacdp.robomimic import train_configs
+
+    assert train_configs.TrainConfigsConfig().output_dir == CONFIGS_DIR / "robomimic"
+    assert train_configs.main([f"--output_dir={tmp_path}"]) == 0
+    assert sorted(capsys.readouterr().out.split()) == sorted(str(tmp_path / name) for name in expected_files())
+    assert all((tmp_path / name).read_text() == (CONFIG_DIR / name).read_text() for name in expected_files())
+    with pytest.raises(SystemExit) as exited:  # an unknown flag: draccus' usage and error, as in LeRobot's CLIs
+        train_configs.main(["--output_dirr=x"])
+    assert exited.value.code == 2
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert last == "python -m lerobot_pacdp.robomimic.train_configs: error: unrecognized arguments: --output_dirr=x"
+
+
 @pytest.mark.parametrize("name", list(TASKS))
 def test_paper_config_parses_with_the_paper_settings(name):
     task = TASKS[name]

@@ -8,9 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from lerobot_pacdp.study import runner, tables
+from lerobot_pacdp.study import evaluation, executors, runner, tables
+from lerobot_pacdp.study.executors import LocalExecutor
+from lerobot_pacdp.study.plan import RunSpec, plan_task, split_episodes, train_config
 from lerobot_pacdp.study.presets import Preset, StudyError, TaskPreset, get_preset, with_overrides
-from lerobot_pacdp.study.runner import Executor, RunSpec, plan_task, run_status, split_episodes, train_config
+from lerobot_pacdp.study.state import DONE_FILE, LOG_FILE, REQUEST_FILE, run_state, write_json_atomic
+
+from fake_trainer import write_checkpoint
 
 FAKE_TRAINER = [sys.executable, str(Path(__file__).with_name("fake_trainer.py"))]
 
@@ -24,7 +28,11 @@ def _tiny_preset(steps: int = 6, save_freq: int = 2, demos=(2, 3), seeds=(0, 1),
 def _write_requests(specs: list[RunSpec], preset: Preset, out: Path) -> None:
     for spec in specs:
         config = train_config(spec, preset.tasks[0], out / "data", preset.seed_offset, out)
-        runner.write_json_atomic(spec.run_dir(out) / runner.REQUEST_FILE, config)
+        write_json_atomic(spec.run_dir(out) / REQUEST_FILE, config)
+
+
+def _local(preset: Preset, out: Path, trainer=FAKE_TRAINER, max_chunk_steps=None) -> LocalExecutor:
+    return LocalExecutor(out, trainer, preset.jobs, max_chunk_steps)
 
 
 def test_cpu_plan_shape_and_methods():
@@ -107,50 +115,67 @@ def test_dp_is_pacdps_twin_and_lerobot_dp_has_the_same_diffusion_settings(tmp_pa
 
 
 def test_executor_skips_finished_runs_and_resumes_interrupted_ones(tmp_path, monkeypatch):
-    monkeypatch.setattr(runner, "POLL_S", 0.05)
+    monkeypatch.setattr(executors, "POLL_S", 0.05)
     preset = _tiny_preset(demos=(2,), seeds=(0,))
     specs = plan_task(preset.tasks[0], preset, num_episodes=8)
     _write_requests(specs, preset, tmp_path)
     calls = tmp_path / "calls.txt"
     monkeypatch.setenv("FAKE_TRAINER_CALLS", str(calls))
     monkeypatch.setenv("FAKE_TRAINER_FAIL_AT", "4")  # every run dies after its step-4 checkpoint
-    outcome = Executor(preset, tmp_path, FAKE_TRAINER, None).run(specs)
-    assert len(outcome["failed"]) == 3 and not outcome["done"]
-    assert all(run_status(s, tmp_path) == ("resume", 4) for s in specs)
+    outcome = _local(preset, tmp_path).run(specs)
+    assert len(outcome.failed) == 3 and not outcome.done
+    assert all(run_state(s, tmp_path) == ("resume", 4) for s in specs)
 
     monkeypatch.delenv("FAKE_TRAINER_FAIL_AT")
-    outcome = Executor(preset, tmp_path, FAKE_TRAINER, None).run(specs)
-    assert len(outcome["done"]) == 3
+    outcome = _local(preset, tmp_path).run(specs)
+    assert len(outcome.done) == 3
     lines = calls.read_text().splitlines()
     assert len(lines) == 6 and all("resume=True from=4" in line for line in lines[3:])
     for spec in specs:
-        done = json.loads((spec.run_dir(tmp_path) / runner.DONE_FILE).read_text())
+        done = json.loads((spec.run_dir(tmp_path) / DONE_FILE).read_text())
         assert done["steps"] == 6 and done["final_checkpoint"].endswith("000006")
 
-    outcome = Executor(preset, tmp_path, FAKE_TRAINER, None).run(specs)  # nothing left to do
-    assert len(outcome["done"]) == 3 and len(calls.read_text().splitlines()) == 6
+    outcome = _local(preset, tmp_path).run(specs)  # nothing left to do
+    assert len(outcome.done) == 3 and len(calls.read_text().splitlines()) == 6
 
 
 def test_run_without_checkpoint_restarts_and_final_checkpoint_counts_as_done(tmp_path, monkeypatch):
-    monkeypatch.setattr(runner, "POLL_S", 0.05)
+    monkeypatch.setattr(executors, "POLL_S", 0.05)
     preset = _tiny_preset(demos=(2,), seeds=(0,))
     specs = plan_task(preset.tasks[0], preset, num_episodes=8)[:2]
     _write_requests(specs, preset, tmp_path)
     (specs[0].train_dir(tmp_path) / "checkpoints").mkdir(parents=True)  # died before its first checkpoint
     final = specs[1].train_dir(tmp_path) / "checkpoints" / "000006"  # finished, but no done marker yet
-    for sub, name, text in (("pretrained_model", "model.safetensors", ""), ("training_state", "training_step.json", '{"step": 6}')):
-        (final / sub).mkdir(parents=True)
-        (final / sub / name).write_text(text)
-    assert run_status(specs[0], tmp_path) == ("new", 0) and run_status(specs[1], tmp_path)[0] == "done"
-    outcome = Executor(preset, tmp_path, FAKE_TRAINER, None).run(specs)
-    assert len(outcome["done"]) == 2
-    assert (specs[1].run_dir(tmp_path) / runner.DONE_FILE).is_file()
-    assert not (specs[1].run_dir(tmp_path) / runner.LOG_FILE).exists()  # never launched
+    write_checkpoint(final, json.loads((specs[1].run_dir(tmp_path) / REQUEST_FILE).read_text()), 6)
+    assert run_state(specs[0], tmp_path) == ("new", 0) and run_state(specs[1], tmp_path).status == "done"
+    outcome = _local(preset, tmp_path).run(specs)
+    assert len(outcome.done) == 2
+    assert (specs[1].run_dir(tmp_path) / DONE_FILE).is_file()
+    assert not (specs[1].run_dir(tmp_path) / LOG_FILE).exists()  # never launched
+
+
+def test_a_final_checkpoint_killed_mid_write_is_not_done_and_the_run_resumes_before_it(tmp_path, monkeypatch):
+    """The study reads checkpoints as pacdp-recover-run does: every file LeRobot writes must be complete."""
+    monkeypatch.setattr(executors, "POLL_S", 0.05)
+    preset = _tiny_preset(demos=(2,), seeds=(0,))
+    spec = plan_task(preset.tasks[0], preset, num_episodes=8)[0]
+    _write_requests([spec], preset, tmp_path)
+    config = json.loads((spec.run_dir(tmp_path) / REQUEST_FILE).read_text())
+    checkpoints = spec.train_dir(tmp_path) / "checkpoints"
+    write_checkpoint(checkpoints / "000004", config, 4)
+    (checkpoints / "last").symlink_to("000004")
+    write_checkpoint(checkpoints / "000006", config, 6)
+    (checkpoints / "000006" / "training_state" / "optimizer_state.safetensors").write_bytes(b"\x10")  # cut off
+    assert run_state(spec, tmp_path) == ("resume", 4)
+    calls = tmp_path / "calls.txt"
+    monkeypatch.setenv("FAKE_TRAINER_CALLS", str(calls))
+    assert _local(preset, tmp_path).run([spec]).done == (spec,)
+    assert calls.read_text() == f"pacdp {spec.name} resume=True from=4\n"
 
 
 def _one_fake_run(tmp_path: Path, monkeypatch, **trainer_env: str) -> tuple[Preset, RunSpec]:
     """A 6-step run (checkpoint every 2) with its request written, for the stand-in trainer with `trainer_env`."""
-    monkeypatch.setattr(runner, "POLL_S", 0.05)
+    monkeypatch.setattr(executors, "POLL_S", 0.05)
     for name, value in trainer_env.items():
         monkeypatch.setenv(name, value)
     preset = _tiny_preset(steps=6, save_freq=2, demos=(2,), seeds=(0,))
@@ -161,10 +186,10 @@ def _one_fake_run(tmp_path: Path, monkeypatch, **trainer_env: str) -> tuple[Pres
 
 def test_chunked_runs_pause_at_a_checkpoint_and_continue(tmp_path, monkeypatch):
     preset, spec = _one_fake_run(tmp_path, monkeypatch, FAKE_TRAINER_SLEEP="1.0")
-    outcome = Executor(preset, tmp_path, FAKE_TRAINER, max_chunk_steps=3).run([spec])
-    assert outcome["paused"] == [spec] and run_status(spec, tmp_path) == ("resume", 4)  # 3 steps -> checkpoint 4
-    outcome = Executor(preset, tmp_path, FAKE_TRAINER, max_chunk_steps=3).run([spec])
-    assert outcome["done"] == [spec]
+    outcome = _local(preset, tmp_path, max_chunk_steps=3).run([spec])
+    assert outcome.paused == (spec,) and run_state(spec, tmp_path) == ("resume", 4)  # 3 steps -> checkpoint 4
+    outcome = _local(preset, tmp_path, max_chunk_steps=3).run([spec])
+    assert outcome.done == (spec,)
 
 
 def test_tables_from_known_rows():
@@ -206,7 +231,9 @@ def test_per_run_values_use_the_last_k_checkpoints():
 
 
 def test_dry_run_prints_the_plan(tmp_path, capsys, pusht_zarr):
-    assert runner.main(["--preset=cpu", f"--output_dir={tmp_path}", "--dry_run=true", "--seeds=[3]", "--demos=[5]"]) == 0
+    argv = ["--preset=cpu", f"--output_dir={tmp_path}", f"--pusht_zarr={pusht_zarr}", "--dry_run=true", "--seeds=[3]",
+            "--demos=[5]"]  # fmt: skip
+    assert runner.main(argv) == 0
     out = capsys.readouterr().out
     assert "seed 3: held-out demos (20)" in out and "5 training demos (same for every method)" in out
     assert out.count(" new") == 3 and not (tmp_path / "runs").exists()
@@ -217,7 +244,7 @@ def test_tiny_study_end_to_end_through_lerobot_train(tmp_path, monkeypatch):
     """Two methods x one seed through the real lerobot-train (a few steps), then metrics and tables."""
     from pacdp_testing import make_tiny_dataset
 
-    monkeypatch.setattr(runner, "POLL_S", 0.2)
+    monkeypatch.setattr(executors, "POLL_S", 0.2)
     make_tiny_dataset(tmp_path / "data", [30] * 6)
     base = get_preset("cpu")
     config = json.loads(json.dumps(base.tasks[0].train_config))
@@ -232,17 +259,17 @@ def test_tiny_study_end_to_end_through_lerobot_train(tmp_path, monkeypatch):
     specs = [s for s in plan_task(task, preset, num_episodes=6) if s.method != "BDP"]
     _write_requests(specs, preset, tmp_path)
     for spec in specs:  # point the runs at the tiny dataset
-        request = spec.run_dir(tmp_path) / runner.REQUEST_FILE
+        request = spec.run_dir(tmp_path) / REQUEST_FILE
         cfg = json.loads(request.read_text())
         cfg["dataset"]["root"] = str(tmp_path / "data")
-        runner.write_json_atomic(request, cfg)
+        write_json_atomic(request, cfg)
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
-    outcome = Executor(preset, tmp_path, runner.default_trainer(), None).run(specs)
-    assert len(outcome["done"]) == 2, outcome
+    outcome = _local(preset, tmp_path, trainer=executors.default_trainer()).run(specs)
+    assert len(outcome.done) == 2, outcome
     for spec in specs:
         saved = json.loads((spec.train_dir(tmp_path) / "checkpoints" / "000004" / "pretrained_model" / "train_config.json").read_text())
         assert saved["dataset"]["episodes"] == list(spec.train_episodes)
-    tables.report(preset, specs, tmp_path)
+    tables.report(preset, specs, evaluation.evaluate_runs(preset, specs, tmp_path), tmp_path)
     per_run = (tmp_path / "results" / "runs.csv").read_text()
     assert "DP" in per_run and "PAC-DP" in per_run
     markdown = (tmp_path / "results" / "tables.md").read_text()
@@ -250,27 +277,32 @@ def test_tiny_study_end_to_end_through_lerobot_train(tmp_path, monkeypatch):
     assert (tmp_path / "results" / "figures" / "main_pusht_d003" / "npe.png").is_file()
 
 
-def test_performance_table_runs_each_rows_benchmark_call_and_reads_its_ratios(tmp_path, monkeypatch):
-    calls = []
+def test_performance_table_runs_each_rows_benchmark_and_reads_its_ratios(tmp_path, monkeypatch):
+    from lerobot_pacdp import speed_benchmark
 
-    def fake_speed_run(command, check):
-        args = command[2:]
-        calls.append(args)
-        batch = int(args[args.index("--batch-size") + 1])
-        ratios = {"train_step": 1.5 + batch / 100, "mean_mode_latency": 1.0, "sample_mode_latency": 1.25, "peak_memory": 2.0}
+    requests = []
+
+    def fake_benchmark(request):
+        requests.append(request)
+        ratios = {"train_step": 1.5 + request.batch_size / 100, "mean_mode_latency": 1.0, "sample_mode_latency": 1.25,
+                  "peak_memory": 2.0}  # fmt: skip
         result = {"config": {"down_dims": [8, 16]}, "device": "test cpu", "ratios_pacdp_over_dp": ratios}
-        (tmp_path / f"speed_{args[1]}_b{batch}_cpu.json").write_text(json.dumps(result))
+        request.result_file().write_text(json.dumps(result))
 
-    monkeypatch.setattr(tables, "SPEED_RESULTS", tmp_path)
-    monkeypatch.setattr(tables.subprocess, "run", fake_speed_run)
+    monkeypatch.setattr(speed_benchmark, "run_benchmark", fake_benchmark)
     monkeypatch.setattr("torch.cuda.is_available", lambda: False)
     preset = get_preset("cpu")
-    lines = tables.performance_table(preset, measure=True).splitlines()
-    assert [c[:4] for c in calls] == [["--preset", r.speed_preset, "--batch-size", str(r.batch_size)] for r in preset.perf_rows]
-    assert calls[1][-4:] == ["--train-steps", "10", "--latency-calls", "5"]  # the paper U-Net row on CPU is short
+    lines = tables.performance_table(preset, tmp_path, measure=True).splitlines()
+    assert [(r.preset, r.batch_size, r.device, r.output_dir) for r in requests] == [
+        (row.speed_preset, row.batch_size, "cpu", tmp_path) for row in preset.perf_rows
+    ]
+    assert (requests[1].train_steps, requests[1].latency_calls) == (10, 5)  # the paper U-Net row on CPU is short
+    assert (requests[0].train_steps, requests[0].latency_calls) == (None, None)  # the benchmark preset's
     assert lines[-1] == "| paper (8/16) | 8 | test cpu | 1.58 | 1.00 | 1.25 | 2.00 |"
-    unmeasured = tables.performance_table(dataclasses.replace(preset, perf_rows=preset.perf_rows[:1]), measure=False)
+    unmeasured = tables.performance_table(dataclasses.replace(preset, perf_rows=preset.perf_rows[:1]), tmp_path, False)
     assert "| cpu (8/16) | 64 | test cpu | 2.14 |" in unmeasured
+    missing = tables.performance_table(preset, tmp_path / "elsewhere", measure=False)
+    assert "| paper | 8 | cpu | not measured (`pacdp-study --perf=true`) | | | |" in missing
 
 
 def test_dynamics_find_the_best_checkpoint_and_the_rise_after_it():
@@ -290,27 +322,30 @@ def test_dynamics_find_the_best_checkpoint_and_the_rise_after_it():
 
 
 def test_unfinished_runs_are_reported_only_when_asked(tmp_path, monkeypatch):
-    monkeypatch.setattr(runner, "POLL_S", 0.05)
+    monkeypatch.setattr(executors, "POLL_S", 0.05)
     monkeypatch.setenv("FAKE_TRAINER_FAIL_AT", "4")  # stopped after its step-4 checkpoint of 6
     preset = dataclasses.replace(_tiny_preset(demos=(2,), seeds=(0,)), success_episodes=0)
     specs = plan_task(preset.tasks[0], preset, num_episodes=8)[:1]
     _write_requests(specs, preset, tmp_path)
-    Executor(preset, tmp_path, FAKE_TRAINER, None).run(specs)
+    _local(preset, tmp_path).run(specs)
     swept = []
 
     def fake_sweep(cfg):
-        swept.append(cfg.runs)
-        return [{"label": specs[0].name, "run": cfg.runs, "step": 4, "npe": 0.1}], {}
+        swept.append(cfg)
+        return [{"label": specs[0].name, "run": str(cfg.runs[0]), "step": 4, "npe": 0.1}], {}
 
-    monkeypatch.setattr(tables, "run_sweep", fake_sweep)
-    assert tables.evaluate_runs(preset, specs, tmp_path) == [] and swept == []
-    (row,) = tables.evaluate_runs(preset, specs, tmp_path, unfinished=True)
-    assert swept == [str(specs[0].train_dir(tmp_path))] and row["step"] == 4 and row["method"] == specs[0].method
+    monkeypatch.setattr(evaluation, "run_sweep", fake_sweep)
+    assert evaluation.evaluate_runs(preset, specs, tmp_path) == [] and swept == []
+    (row,) = evaluation.evaluate_runs(preset, specs, tmp_path, unfinished=True)
+    assert row["step"] == 4 and row["method"] == specs[0].method
+    (sweep,) = swept  # typed lists, not comma-joined strings
+    assert sweep.runs == [specs[0].train_dir(tmp_path)] and sweep.labels == [specs[0].name]
+    assert sweep.episodes == list(specs[0].heldout_episodes)
 
 
 def test_a_run_stopped_by_sigterm_is_paused_not_failed_and_resumes(tmp_path, monkeypatch):
     preset, spec = _one_fake_run(tmp_path, monkeypatch, FAKE_TRAINER_KILL_AT="2")
-    outcome = Executor(preset, tmp_path, FAKE_TRAINER, None).run([spec])
-    assert outcome["paused"] == [spec] and not outcome["failed"] and run_status(spec, tmp_path) == ("resume", 2)
+    outcome = _local(preset, tmp_path).run([spec])
+    assert outcome.paused == (spec,) and not outcome.failed and run_state(spec, tmp_path) == ("resume", 2)
     monkeypatch.delenv("FAKE_TRAINER_KILL_AT")
-    assert Executor(preset, tmp_path, FAKE_TRAINER, None).run([spec])["done"] == [spec]
+    assert _local(preset, tmp_path).run([spec]).done == (spec,)

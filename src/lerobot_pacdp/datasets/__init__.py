@@ -26,10 +26,10 @@ def output_root_problem(output_root: Path, source: Path, overwrite: bool) -> str
     if not output_root.exists() and not output_root.is_symlink():
         return None
     if not overwrite:
-        return f"{output_root} already exists; choose another output root or pass overwrite=True (--overwrite)."
+        return f"{output_root} already exists; choose another output root or pass --overwrite=true."
     if not (output_root / "meta" / "info.json").is_file():
         return (
-            f"{output_root} exists and is not a LeRobotDataset (no meta/info.json); --overwrite replaces only a "
+            f"{output_root} exists and is not a LeRobotDataset (no meta/info.json); --overwrite=true replaces only a "
             "dataset: choose another output root or remove it yourself."
         )
     return None

@@ -6,7 +6,6 @@ gym_pusht observes (`obs_type="environment_state_agent_pos"`), absolute agent ta
 and gym_pusht's reward / success recomputed from the block pose.
 """
 
-import argparse
 import itertools
 import sys
 from collections.abc import Iterable, Sequence
@@ -16,10 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_pacdp.atomic_io import staged_directory
-from lerobot_pacdp.cli_errors import UserInputError, report_user_errors
+from lerobot_pacdp.cli_errors import UserInputError, run_draccus_cli
 from lerobot_pacdp.datasets import output_root_problem, quiet_dataset_writing
 from lerobot_pacdp.datasets.pusht_geometry import NUM_KEYPOINTS, keypoints_and_coverage, reward_and_success
-from lerobot_pacdp.episodes import parse_episodes
+from lerobot_pacdp.episodes import EpisodeSelection, selected_episodes
 
 FPS = 10
 TASK = "Push the T-shaped block onto the T-shaped target."
@@ -127,7 +126,7 @@ def _read_every_chunk(array, store_root: Path) -> np.ndarray:
     values = np.empty(array.shape, dtype=array.dtype)
     for coords in itertools.product(*(range(n) for n in array.cdata_shape)):
         region = tuple(
-            slice(i * size, min((i + 1) * size, extent)) for i, size, extent in zip(coords, array.chunks, array.shape)
+            slice(i * size, min((i + 1) * size, extent)) for i, size, extent in zip(coords, array.chunks, array.shape, strict=True)
         )
         key = f"{array.path}/{array.metadata.encode_chunk_key(coords)}"
         rows = f"rows {region[0].start}-{region[0].stop - 1}"
@@ -221,14 +220,14 @@ def convert_pusht_zarr(
     zarr_path: str | Path,
     output_root: str | Path,
     repo_id: str = "local/pusht",
-    episodes: Sequence[int] | str | None = None,
+    episodes: EpisodeSelection | None = None,
     overwrite: bool = False,
     *,
     progress: bool = False,
 ) -> Path:
     """Convert the replay buffer (or the demos listed in `episodes`, renumbered from 0) to a LeRobotDataset.
 
-    `episodes` is a list of indices or a selection such as "0-19". The dataset is built in a hidden sibling
+    `episodes` is a list of indices or a range selection such as "0-19". The dataset is built in a hidden sibling
     directory and renamed into place only once finalized, so `output_root` is either a complete dataset or
     untouched; with `overwrite`, a previous dataset there is replaced only after the new one is complete
     (never the input, nor anything that is not a dataset). Returns the absolute output root.
@@ -236,7 +235,7 @@ def convert_pusht_zarr(
     source = Path(zarr_path).expanduser()
     buffer = load_replay_buffer(source)
     if isinstance(episodes, str):
-        episodes = parse_episodes(episodes, buffer.num_episodes)
+        episodes = selected_episodes(episodes, buffer.num_episodes)
     selected = _check_episodes(episodes, buffer.num_episodes)
     output_root = Path(output_root).expanduser().absolute()
     problem = output_root_problem(output_root, source, overwrite)
@@ -257,32 +256,34 @@ def convert_pusht_zarr(
     return output_root
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """`pacdp-convert-pusht`: exits 2 with a one-line message (no traceback) on bad input."""
-    parser = argparse.ArgumentParser(
-        prog="pacdp-convert-pusht",
-        description="Convert Diffusion Policy's PushT zarr replay buffer into a local LeRobotDataset "
-        "shaped like lerobot/pusht_keypoints.",
-    )
-    parser.add_argument("--zarr", required=True, type=Path, help="path to pusht_cchi_v7_replay.zarr")
-    parser.add_argument("--output-root", required=True, type=Path, help="dataset directory to create")
-    parser.add_argument("--repo-id", default="local/pusht", help="dataset repo id (default: local/pusht)")
-    parser.add_argument("--episodes", help="demo indices to convert, e.g. 0-19 or 0,1,2 (default: all)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output root")
-    args = parser.parse_args(argv)
+@dataclass
+class ConvertPushTConfig:
+    """`pacdp-convert-pusht`: Diffusion Policy's PushT replay buffer -> a LeRobotDataset like lerobot/pusht_keypoints."""
+
+    zarr: Path | None = None  # pusht_cchi_v7_replay.zarr, from Diffusion Policy's pusht.zip
+    output_root: Path | None = None  # the dataset directory to create
+    repo_id: str = "local/pusht"
+    episodes: EpisodeSelection | None = None  # the demos to convert, 0-19 or [0,1,2] (default: all)
+    overwrite: bool = False  # replace a LeRobotDataset already at output_root
+
+
+def _convert_and_report(cfg: ConvertPushTConfig) -> int:
+    if cfg.zarr is None or cfg.output_root is None:
+        raise PushTConversionError(f"pass --zarr=<pusht_cchi_v7_replay.zarr> and --output_root=<new directory>; {_HINT}.")
     quiet_dataset_writing()
-    return report_user_errors(parser.prog, lambda: _convert_and_report(args))
-
-
-def _convert_and_report(args: argparse.Namespace) -> int:
-    root = convert_pusht_zarr(args.zarr, args.output_root, args.repo_id, args.episodes, args.overwrite, progress=True)
-    print(f"Wrote the LeRobotDataset {args.repo_id} to {root}")
+    root = convert_pusht_zarr(cfg.zarr, cfg.output_root, cfg.repo_id, cfg.episodes, cfg.overwrite, progress=True)
+    print(f"Wrote the LeRobotDataset {cfg.repo_id} to {root}")
     print(
         "Train on it offline with:\n"
         f"  HF_HUB_OFFLINE=1 lerobot-train --policy.type=pacdp --policy.push_to_hub=false "
-        f"--dataset.repo_id={args.repo_id} --dataset.root={root}"
+        f"--dataset.repo_id={cfg.repo_id} --dataset.root={root}"
     )
     return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`pacdp-convert-pusht`: exits 2 with a one-line message (no traceback) on bad input."""
+    return run_draccus_cli("pacdp-convert-pusht", ConvertPushTConfig, _convert_and_report, argv)
 
 
 if __name__ == "__main__":

@@ -40,7 +40,6 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import draccus
 import torch
 from safetensors.torch import load_file
 from torch import Tensor
@@ -56,15 +55,22 @@ from lerobot_pacdp.certification import (
     prior_tensors,
     tensor_differences,
 )
+from lerobot_pacdp.cli_errors import run_draccus_cli
+from lerobot_pacdp.episodes import EpisodeSelection, selected_episodes
 from lerobot_pacdp.metrics.checkpoints import (
     LoadedPolicy,
     MetricsError,
     UnsupportedPolicyError,
     load_policy,
     resolve_pretrained_dir,
-    run_cli,
 )
-from lerobot_pacdp.metrics.data import DatasetArgs, EpisodeSplit, EvaluationData, resolve_split, split_from_train_config
+from lerobot_pacdp.metrics.data import (
+    DatasetArgs,
+    EpisodeSplit,
+    EvaluationData,
+    resolve_split,
+    split_from_train_config,
+)
 from lerobot_pacdp.metrics.kl_inverse import kl_inverse
 from lerobot_pacdp.metrics.learned_prior import PROVENANCE_FILE, check_disjoint_from_prior
 from lerobot_pacdp.metrics.noise_prediction import (
@@ -467,10 +473,10 @@ class CertifyConfig:
 
     checkpoint: Path | None = None  # .../checkpoints/<step>/pretrained_model
     dataset: DatasetArgs = field(default_factory=DatasetArgs)
-    # Demonstrations Q was trained on (certified); default: the run's training split. E.g. "70-199".
-    train_episodes: str | None = None
-    # Unseen demonstrations for the posterior-mean bound; default: the run's eval_split ("" for none).
-    test_episodes: str | None = None
+    # Demonstrations Q was trained on (certified); default: the run's training split. E.g. 70-199 or [70,71].
+    train_episodes: EpisodeSelection | None = None
+    # Unseen demonstrations for the posterior-mean bound; default: the run's eval_split ([] for none).
+    test_episodes: EpisodeSelection | None = None
     clip: float = 1.0  # C: per-example MSE clipped at C, divided by C
     num_weight_samples: int = DEFAULT_WEIGHT_SAMPLES  # m (stage 1)
     delta: float | None = None  # default: the checkpoint's config.delta
@@ -485,13 +491,13 @@ class CertifyConfig:
     prior: Path | None = None
 
 
-def _certify_main(argv: Sequence[str] | None) -> int:
-    cfg = draccus.parse(config_class=CertifyConfig, args=argv)
+def _certify_and_report(cfg: CertifyConfig) -> int:
     if cfg.checkpoint is None:
         raise MetricsError("pass --checkpoint=<.../checkpoints/<step>/pretrained_model>")
     loaded = load_policy(cfg.checkpoint, cfg.device)
     require_pacdp(loaded)
-    split = resolve_split(loaded.path, cfg.dataset, cfg.train_episodes, cfg.test_episodes)
+    train, test = (None if e is None else selected_episodes(e) for e in (cfg.train_episodes, cfg.test_episodes))
+    split = resolve_split(loaded.path, cfg.dataset, train, test)
     check_held_out_is_unseen(loaded.path, split, cfg.dataset.root)
     if cfg.prior is not None:
         check_disjoint_from_prior(cfg.prior, split.train_episodes + split.heldout_episodes)
@@ -519,7 +525,7 @@ def _certify_main(argv: Sequence[str] | None) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_cli("pacdp-certify", _certify_main, argv)
+    return run_draccus_cli("pacdp-certify", CertifyConfig, _certify_and_report, argv)
 
 
 if __name__ == "__main__":

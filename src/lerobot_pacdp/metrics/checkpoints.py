@@ -5,8 +5,6 @@ a PAC-DP policy is evaluated at its posterior mean unless a caller draws weights
 """
 
 import json
-import sys
-from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,13 +14,14 @@ from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 from lerobot.processor import PolicyProcessorPipeline
 
 import lerobot_pacdp  # noqa: F401  (registers the `pacdp` type before any config is parsed)
+from lerobot_pacdp.cli_errors import UserInputError
+from lerobot_pacdp.train_runs import CHECKPOINTS_DIR, PRETRAINED_DIR, checkpoint_step, step_dirs
 
 SUPPORTED_POLICY_TYPES = ("pacdp", "diffusion")
-PRETRAINED_DIRNAME = "pretrained_model"
 REQUIRED_FILES = ("config.json", "model.safetensors")
 
 
-class MetricsError(Exception):
+class MetricsError(UserInputError):
     """A user-facing problem with the inputs of a metric; the CLIs print it and exit 2."""
 
 
@@ -59,7 +58,7 @@ class LoadedPolicy:
 def resolve_pretrained_dir(path: str | Path) -> Path:
     """The `pretrained_model` directory of `path`: itself, `path/pretrained_model`, or a checkpoint step dir."""
     path = Path(path)
-    for candidate in (path, path / PRETRAINED_DIRNAME):
+    for candidate in (path, path / PRETRAINED_DIR):
         if all((candidate / name).is_file() for name in REQUIRED_FILES):
             return candidate
     if not path.exists():
@@ -69,7 +68,7 @@ def resolve_pretrained_dir(path: str | Path) -> Path:
         )
     raise CheckpointNotFoundError(
         f"{path} is not a policy checkpoint: it holds no {' and '.join(REQUIRED_FILES)} (nor does "
-        f"{path / PRETRAINED_DIRNAME}). Pass a `.../checkpoints/<step>/pretrained_model` directory."
+        f"{path / PRETRAINED_DIR}). Pass a `.../checkpoints/<step>/pretrained_model` directory."
     )
 
 
@@ -123,30 +122,17 @@ def list_checkpoints(run_dir: str | Path) -> list[tuple[int, Path]]:
     is a run of one checkpoint; its step is the `<step>` directory's number, else 0.
     """
     run_dir = Path(run_dir)
-    checkpoints_dir = run_dir / "checkpoints"
+    checkpoints_dir = run_dir / CHECKPOINTS_DIR
     if not checkpoints_dir.is_dir():
-        if run_dir.exists() and any((d / "config.json").is_file() for d in (run_dir, run_dir / PRETRAINED_DIRNAME)):
+        if run_dir.exists() and any((d / "config.json").is_file() for d in (run_dir, run_dir / PRETRAINED_DIR)):
             pretrained_dir = resolve_pretrained_dir(run_dir)
-            step_name = pretrained_dir.parent.name if pretrained_dir.name == PRETRAINED_DIRNAME else ""
+            step_name = pretrained_dir.parent.name if pretrained_dir.name == PRETRAINED_DIR else ""
             return [(int(step_name) if step_name.isdigit() else 0, pretrained_dir)]
         raise CheckpointNotFoundError(
             f"{run_dir} is neither a lerobot-train output directory ({checkpoints_dir} does not exist) "
             "nor a checkpoint (no config.json)."
         )
-    found = sorted(
-        (int(step_dir.name), step_dir / PRETRAINED_DIRNAME)
-        for step_dir in checkpoints_dir.iterdir()
-        if step_dir.name.isdigit() and (step_dir / PRETRAINED_DIRNAME).is_dir()
-    )
+    found = [(checkpoint_step(d), d / PRETRAINED_DIR) for d in step_dirs(run_dir) if (d / PRETRAINED_DIR).is_dir()]
     if not found:
-        raise CheckpointNotFoundError(f"{checkpoints_dir} holds no `<step>/{PRETRAINED_DIRNAME}` checkpoint.")
+        raise CheckpointNotFoundError(f"{checkpoints_dir} holds no `<step>/{PRETRAINED_DIR}` checkpoint.")
     return found
-
-
-def run_cli(prog: str, body: Callable[[Sequence[str] | None], int], argv: Sequence[str] | None) -> int:
-    """Run a CLI body; a `MetricsError` becomes a one-line message and exit status 2 (no traceback)."""
-    try:
-        return body(argv)
-    except MetricsError as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 2

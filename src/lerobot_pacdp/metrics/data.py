@@ -22,7 +22,6 @@ from lerobot.utils.feature_utils import dataset_to_policy_features
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from lerobot_pacdp.episodes import EpisodeSelectionError, parse_episodes
 from lerobot_pacdp.in_memory_data import InMemoryStateDataset, unsupported_reason
 from lerobot_pacdp.metrics.checkpoints import DatasetMismatchError, LoadedPolicy, MetricsError
 
@@ -35,16 +34,6 @@ class EpisodeSplit:
     root: Path | None
     train_episodes: list[int]
     heldout_episodes: list[int]
-
-
-def episodes_from_spec(spec: str) -> list[int]:
-    """Parse "140-199", "0,1,2" or "0-4,10" (inclusive ranges); "" selects none."""
-    if not spec.strip():
-        return []
-    try:
-        return parse_episodes(spec)
-    except EpisodeSelectionError as exc:
-        raise MetricsError(str(exc)) from None
 
 
 def split_from_train_config(pretrained_dir: Path, root: Path | None = None) -> EpisodeSplit:
@@ -86,16 +75,18 @@ class DatasetArgs:
     root: Path | None = None
 
 
-def resolve_split(pretrained_dir: Path, dataset: DatasetArgs, train: str | None, heldout: str | None) -> EpisodeSplit:
-    """Explicit flags win ("" selects no episodes); whatever is missing comes from the run's split."""
+def resolve_split(
+    pretrained_dir: Path, dataset: DatasetArgs, train: list[int] | None, heldout: list[int] | None
+) -> EpisodeSplit:
+    """Explicit episodes win (`[]` selects none); whatever is missing (None) comes from the run's split."""
     run = None
     if train is None or heldout is None or dataset.repo_id is None:
         run = split_from_train_config(pretrained_dir, dataset.root)
     return EpisodeSplit(
         repo_id=dataset.repo_id or run.repo_id,
         root=dataset.root if dataset.root is not None else (run.root if run else None),
-        train_episodes=episodes_from_spec(train) if train is not None else run.train_episodes,
-        heldout_episodes=episodes_from_spec(heldout) if heldout is not None else run.heldout_episodes,
+        train_episodes=list(train) if train is not None else run.train_episodes,
+        heldout_episodes=list(heldout) if heldout is not None else run.heldout_episodes,
     )
 
 

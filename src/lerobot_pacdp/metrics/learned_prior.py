@@ -31,22 +31,21 @@ import logging
 import shutil
 import sys
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
-import draccus
 from lerobot.configs.policies import PreTrainedConfig
 from safetensors.torch import load_file
 
 from lerobot_pacdp.atomic_io import staged_directory
 from lerobot_pacdp.bayesian_layers import kl_divergence
+from lerobot_pacdp.cli_errors import run_draccus_cli
 from lerobot_pacdp.configuration_pacdp import PacdpConfig
 from lerobot_pacdp.metrics.checkpoints import (
     CheckpointNotFoundError,
     MetricsError,
     checkpoint_policy_type,
     resolve_pretrained_dir,
-    run_cli,
 )
 from lerobot_pacdp.metrics.data import split_from_train_config
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
@@ -119,12 +118,13 @@ def build_learned_prior(
     if output_dir.exists() and any(output_dir.iterdir()):
         raise MetricsError(f"{output_dir} exists and is not empty; choose a new --output_dir.")
     source_config = PreTrainedConfig.from_pretrained(source_dir)
-    values = {f.name: getattr(source_config, f.name) for f in fields(source_config) if f.init}
-    values.update(compile_model=False, num_train_samples=None, device="cpu", pretrained_path=None, bayesian=True)
-    values.update(freeze_deterministic=freeze_deterministic)
-    overrides = dict(prior_rho=prior_rho, kl_weight=kl_weight, delta=delta, bayesian_conditioning=bayesian_conditioning)
-    values.update({k: v for k, v in overrides.items() if v is not None})
-    config = PacdpConfig(**{f.name: values[f.name] for f in fields(PacdpConfig) if f.init and f.name in values})
+    overrides = {"prior_rho": prior_rho, "kl_weight": kl_weight, "delta": delta,
+                 "bayesian_conditioning": bayesian_conditioning}  # fmt: skip
+    config = PacdpConfig.from_diffusion(
+        source_config, compile_model=False, num_train_samples=None, device="cpu", pretrained_path=None,
+        bayesian=True, freeze_deterministic=freeze_deterministic,
+        **{k: v for k, v in overrides.items() if v is not None},
+    )  # fmt: skip
 
     policy = PacdpPolicy(config)
     policy.load_state_dict(learned_prior_state(policy, load_file(source_dir / "model.safetensors")), strict=True)
@@ -186,8 +186,7 @@ class LearnedPriorConfig:
     freeze_deterministic: bool = True
 
 
-def _main(argv: Sequence[str] | None) -> int:
-    cfg = draccus.parse(config_class=LearnedPriorConfig, args=argv)
+def _build_and_report(cfg: LearnedPriorConfig) -> int:
     if cfg.source is None or cfg.output_dir is None:
         raise MetricsError("pass --source=<split-A checkpoint> and --output_dir=<new directory>")
     out = build_learned_prior(
@@ -205,7 +204,7 @@ def _main(argv: Sequence[str] | None) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_cli("pacdp-learned-prior", _main, argv)
+    return run_draccus_cli("pacdp-learned-prior", LearnedPriorConfig, _build_and_report, argv)
 
 
 if __name__ == "__main__":

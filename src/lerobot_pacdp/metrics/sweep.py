@@ -7,7 +7,7 @@ the training step with one curve per method and a mean +- std band over its runs
 summary statistic (`summary.json`, printed): per run the mean over its last 10 checkpoints, then mean +-
 std (sample std, ddof=1) over the runs of a method.
 
-    pacdp-metrics --runs=outputs/pacdp_s0,outputs/pacdp_s1,outputs/dp_s0,outputs/dp_s1 --output_dir=outputs/metrics
+    pacdp-metrics --runs=[outputs/pacdp_s0,outputs/pacdp_s1,outputs/dp_s0,outputs/dp_s1] --output_dir=outputs/metrics
 
 Held-out episodes default to each run's own `--dataset.eval_split` episodes (from train_config.json);
 methods default to DP / BDP (pacdp with kl_weight 0) / PAC-DP, or pass `--labels` (one per run).
@@ -35,14 +35,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import draccus
 import torch
 from lerobot.envs.configs import EnvConfig
 from tqdm.auto import tqdm
 
 from lerobot_pacdp.atomic_io import write_text_atomic
 from lerobot_pacdp.bayesian_layers import exact_kl
-from lerobot_pacdp.metrics.checkpoints import LoadedPolicy, MetricsError, list_checkpoints, load_policy, run_cli
+from lerobot_pacdp.cli_errors import run_draccus_cli
+from lerobot_pacdp.episodes import EpisodeSelection, selected_episodes
+from lerobot_pacdp.metrics.checkpoints import LoadedPolicy, MetricsError, list_checkpoints, load_policy
 from lerobot_pacdp.metrics.data import DatasetArgs, EvaluationData, resolve_split
 from lerobot_pacdp.metrics.nll_bound import NATS_PER_BIT, NllAccumulator, NllBound, nll_step_errors
 from lerobot_pacdp.metrics.noise_prediction import (
@@ -259,13 +260,14 @@ def plot_metrics(rows: list[dict], output_dir: Path) -> list[Path]:
 
 @dataclass
 class SweepConfig:
-    """`pacdp-metrics` options (LeRobot-style `--flag=value`; `--config_path=file.json` works too)."""
+    """`pacdp-metrics` options (LeRobot-style `--flag=value`, lists as `--runs=[a,b]`; `--config_path=file.json`
+    works too). `run_sweep(SweepConfig(...))` is the same from Python."""
 
-    runs: str = ""  # comma-separated lerobot-train output dirs (checkpoints/<step>/pretrained_model) or checkpoints
-    labels: str | None = None  # comma-separated method label per run (default: DP / BDP / PAC-DP)
+    runs: list[Path] = field(default_factory=list)  # lerobot-train output dirs or single checkpoints
+    labels: list[str] | None = None  # a method label per run (default: DP / BDP / PAC-DP)
     output_dir: Path = Path("outputs/metrics")
     dataset: DatasetArgs = field(default_factory=DatasetArgs)  # default: each run's dataset
-    episodes: str | None = None  # held-out episodes, e.g. "140-199" (default: each run's eval split)
+    episodes: EpisodeSelection | None = None  # held-out episodes, [140,141] or 140-199 (default: each run's eval split)
     seed: int = 0  # the per-example draws of t and eps
     batch_size: int = 256
     nll: bool = True  # false: NPE (and success rate) only
@@ -283,15 +285,20 @@ class SweepConfig:
 
 def _settings(cfg: SweepConfig) -> dict:
     """What a stored row depends on besides the checkpoint: rows are reused only if these match."""
-    keys = ("episodes", "seed", "nll", "nll_steps", "frame_stride", "eval_episodes")
+    keys = ("seed", "nll", "nll_steps", "frame_stride", "eval_episodes")
     settings = {k: getattr(cfg, k) for k in keys}
-    settings.update(dataset=str(cfg.dataset), env=None if cfg.env is None else repr(cfg.env), rows_version=ROWS_VERSION)
+    # Stored as earlier versions wrote it (a range as typed, a list comma-joined), so rows already written
+    # (the committed results/ among them) are still reused.
+    episodes = cfg.episodes if cfg.episodes is None or isinstance(cfg.episodes, str) else ",".join(map(str, cfg.episodes))
+    env = None if cfg.env is None else repr(cfg.env)
+    settings.update(episodes=episodes, dataset=str(cfg.dataset), env=env, rows_version=ROWS_VERSION)
     return settings
 
 
 def _run_data(cfg: SweepConfig, loaded: LoadedPolicy, shared: dict[tuple, EvaluationData]) -> EvaluationData:
     """The run's held-out windows; runs with the same data and windowing share one (cached) object."""
-    split = resolve_split(loaded.path, cfg.dataset, "", cfg.episodes)
+    heldout = None if cfg.episodes is None else selected_episodes(cfg.episodes)
+    split = resolve_split(loaded.path, cfg.dataset, [], heldout)
     if not split.heldout_episodes:
         raise MetricsError(f"the run of {loaded.path} held out no episodes (eval_split = 0); pass --episodes.")
     config = loaded.policy.config
@@ -313,10 +320,10 @@ def _run_data(cfg: SweepConfig, loaded: LoadedPolicy, shared: dict[tuple, Evalua
 
 def run_sweep(cfg: SweepConfig) -> tuple[list[dict], dict]:
     """Evaluate every checkpoint of every run; write the tables, plots and summary into cfg.output_dir."""
-    runs = [Path(r) for r in cfg.runs.split(",") if r.strip()]
+    runs = [Path(r) for r in cfg.runs]
     if not runs:
-        raise MetricsError("pass --runs=<run dir>[,<run dir>...] (lerobot-train output directories)")
-    labels = cfg.labels.split(",") if cfg.labels else [None] * len(runs)
+        raise MetricsError("pass --runs=[<run dir>,...] (lerobot-train output directories or checkpoints)")
+    labels = list(cfg.labels) if cfg.labels else [None] * len(runs)
     if len(labels) != len(runs):
         raise MetricsError(f"--labels has {len(labels)} entries for {len(runs)} runs; give one label per run.")
     checkpoints = {run: list_checkpoints(run) for run in runs}  # fail before any work on a bad run dir
@@ -399,8 +406,7 @@ def _write_tables(rows: list[dict], settings: dict, output_dir: Path) -> None:
     write_text_atomic(output_dir / "metrics.json", json.dumps({"settings": settings, "rows": rows}, indent=2))
 
 
-def _main(argv: Sequence[str] | None) -> int:
-    cfg = draccus.parse(config_class=SweepConfig, args=argv)
+def _report_sweep(cfg: SweepConfig) -> int:
     rows, summary = run_sweep(cfg)
     print(
         f"evaluated {len(rows)} checkpoints; wrote {cfg.output_dir}/metrics.csv, metrics.json, summary.json and plots"
@@ -410,7 +416,7 @@ def _main(argv: Sequence[str] | None) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_cli("pacdp-metrics", _main, argv)
+    return run_draccus_cli("pacdp-metrics", SweepConfig, _report_sweep, argv)
 
 
 if __name__ == "__main__":

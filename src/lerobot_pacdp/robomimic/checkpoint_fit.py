@@ -14,7 +14,7 @@ from typing import Any
 from lerobot_pacdp.cli_errors import UserInputError
 from lerobot_pacdp.robomimic import compat
 from lerobot_pacdp.robomimic.tasks import TASKS, RobomimicTask
-from lerobot_pacdp.run_recovery import PROCESSOR_FILES
+from lerobot_pacdp.train_runs import PROCESSOR_FILES
 
 CONVERTER_METADATA = ("meta", "robomimic.json")  # hdf5_adapter.METADATA_FILE, in the dataset's meta/
 

@@ -92,18 +92,18 @@ def make_robosuite_env(
     task = get_task(task) if isinstance(task, str) else task
     generation = compat.normalize_generation(generation)
     robosuite = _import_robosuite()
-    kwargs: dict[str, Any] = dict(
-        robots=list(task.robots),
-        controller_configs=controller_config(task, generation),
-        has_renderer=False,
-        has_offscreen_renderer=False,
-        use_camera_obs=False,
-        use_object_obs=True,
-        reward_shaping=False,
-        control_freq=FPS,
-        ignore_done=True,
-        hard_reset=hard_reset,
-    )
+    kwargs: dict[str, Any] = {
+        "robots": list(task.robots),
+        "controller_configs": controller_config(task, generation),
+        "has_renderer": False,
+        "has_offscreen_renderer": False,
+        "use_camera_obs": False,
+        "use_object_obs": True,
+        "reward_shaping": False,
+        "control_freq": FPS,
+        "ignore_done": True,
+        "hard_reset": hard_reset,
+    }
     if task.env_configuration is not None:
         kwargs["env_configuration"] = task.env_configuration
     if lite_physics is None and generation == compat.LEGACY:

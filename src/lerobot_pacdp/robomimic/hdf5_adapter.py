@@ -1,7 +1,7 @@
 """Convert a robomimic low-dim hdf5 file (any task) into a local LeRobotDataset (v3).
 
-    pacdp-convert-robomimic --hdf5 lift/ph/low_dim.hdf5 --output-root data/robomimic_lift
-    pacdp-convert-robomimic --episodes-of data/robomimic_lift --split train --first 40
+    pacdp-convert-robomimic --hdf5=lift/ph/low_dim.hdf5 --output_root=data/robomimic_lift
+    pacdp-convert-robomimic --episodes_of=data/robomimic_lift --split=train --first=40
 
 Features (see `tasks.py` for the layouts):
     observation.state              robot proprioception: robot0_eef_pos, robot0_eef_quat (xyzw),
@@ -15,10 +15,9 @@ Episodes are the file's demos sorted like robomimic sorts them (`demo_0, demo_1,
 episode i is the i-th demo and "the first K demos" is `--dataset.episodes=[0,...,K-1]`. The file's
 `mask/<filter>` splits (e.g. `train`, `valid`) are kept as episode-index lists, together with the
 robosuite generation that recorded the file (which `--env.robosuite_compat` to evaluate with), in
-`meta/robomimic.json`; `select_episodes` / `--episodes-of` turn them into `--dataset.episodes` lists.
+`meta/robomimic.json`; `select_episodes` / `--episodes_of` turn them into `--dataset.episodes` lists.
 """
 
-import argparse
 import contextlib
 import json
 import re
@@ -31,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from lerobot_pacdp.atomic_io import staged_directory
-from lerobot_pacdp.cli_errors import UserInputError, report_user_errors
+from lerobot_pacdp.cli_errors import UserInputError, run_draccus_cli
 from lerobot_pacdp.datasets import output_root_problem, quiet_dataset_writing
 from lerobot_pacdp.robomimic import compat
 from lerobot_pacdp.robomimic.tasks import (
@@ -104,7 +103,7 @@ def _reading(path: Path) -> Iterator[None]:
     """Turn HDF5's errors for a damaged file (OSError, KeyError, RuntimeError) into one that says so."""
     try:
         yield
-    except RobomimicConversionError:
+    except UserInputError:
         raise
     except (OSError, KeyError, RuntimeError, ValueError) as exc:
         raise RobomimicConversionError(
@@ -138,14 +137,11 @@ def _inspect_open_file(path: Path, f, task: str | None) -> RobomimicFile:
         ) from None
     file_task = task_for_env_name(env_name)
     if task is not None:
-        try:
-            wanted = get_task(task)
-        except ValueError as exc:
-            raise RobomimicConversionError(str(exc)) from None
+        wanted = get_task(task)
         if file_task is not None and file_task is not wanted:
             raise RobomimicConversionError(
                 f"{path} holds {file_task.name} demos (robosuite env {env_name}), not {wanted.name}; drop "
-                f"--task or pass --task {file_task.name}."
+                f"--task or pass --task={file_task.name}."
             )
         file_task = wanted
     if file_task is None:
@@ -154,7 +150,7 @@ def _inspect_open_file(path: Path, f, task: str | None) -> RobomimicFile:
             f"({', '.join(TASK_NAMES)}); pass --task to convert it as one of them."
         )
 
-    demos = tuple(sorted((k for k in data.keys() if isinstance(data[k], h5py.Group)), key=_demo_sort_key))
+    demos = tuple(sorted((k for k in data if isinstance(data[k], h5py.Group)), key=_demo_sort_key))
     if not demos:
         raise RobomimicConversionError(f"{path} has no demonstrations under 'data'; {_HINT}.")
     lengths = tuple(_check_demo(path, data[name], name, file_task) for name in demos)
@@ -162,7 +158,7 @@ def _inspect_open_file(path: Path, f, task: str | None) -> RobomimicFile:
     masks: dict[str, tuple[str, ...]] = {}
     mask_group = f.get("mask")
     if isinstance(mask_group, h5py.Group):
-        for name in mask_group.keys():
+        for name in mask_group:
             values = np.asarray(mask_group[name][()]).reshape(-1)
             masks[name] = tuple(_decode(v) for v in values)
             unknown = sorted(set(masks[name]) - set(demos), key=_demo_sort_key)
@@ -251,7 +247,6 @@ def demo_frames(demo, info: RobomimicFile) -> dict[str, np.ndarray]:
     reward shaping (dense rewards, max 1 on success) it is reward >= 1.
     """
     task = info.task
-    obs = demo["obs"]
     state = np.concatenate([_finite(info, demo, f"obs/{key}") for key in task.proprio_keys], axis=1)
     rewards = _finite(info, demo, "rewards").reshape(-1)
     success = rewards >= 1.0 - 1e-6 if info.reward_shaping else rewards > 0
@@ -326,7 +321,7 @@ def convert_robomimic_hdf5(
     demos = list(info.demos)
     if max_demos is not None:
         if max_demos < 1:
-            raise RobomimicConversionError(f"--max-demos must be >= 1, got {max_demos}.")
+            raise RobomimicConversionError(f"--max_demos must be >= 1, got {max_demos}.")
         demos = demos[:max_demos]
     repo_id = repo_id or f"local/robomimic_{info.task.name}"
     output_root = Path(output_root).expanduser().absolute()
@@ -405,7 +400,7 @@ def select_episodes(dataset_root: str | Path, split: str | None = None, first: i
     if first is not None:
         if first < 1 or first > len(episodes):
             raise RobomimicConversionError(
-                f"--first {first} is out of range: {'split ' + repr(split) if split else 'the dataset'} has "
+                f"--first={first} is out of range: {'split ' + repr(split) if split else 'the dataset'} has "
                 f"{len(episodes)} demos."
             )
         episodes = episodes[:first]
@@ -418,42 +413,38 @@ def episodes_argument(episodes: Sequence[int]) -> str:
 
 
 # ----------------------------------------------------------------------------------------------------------
-def main(argv: Sequence[str] | None = None) -> int:
-    """`pacdp-convert-robomimic`: exits 2 with a one-line message (no traceback) on bad input."""
-    parser = argparse.ArgumentParser(
-        prog="pacdp-convert-robomimic",
-        description="Convert a robomimic low-dim hdf5 file into a local LeRobotDataset, or print the "
-        "--dataset.episodes list of a split / first-K selection of a converted dataset.",
-    )
-    parser.add_argument("--hdf5", type=Path, help="robomimic file, e.g. lift/ph/low_dim.hdf5")
-    parser.add_argument("--output-root", type=Path, help="dataset directory to create")
-    parser.add_argument("--repo-id", help="dataset repo id (default: local/robomimic_<task>)")
-    parser.add_argument("--task", help=f"expected task ({', '.join(TASK_NAMES)}); default: from the file")
-    parser.add_argument("--max-demos", type=int, help="convert only the first N demos")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output root")
-    parser.add_argument("--episodes-of", type=Path, metavar="DATASET_ROOT", help="print a --dataset.episodes list")
-    parser.add_argument("--split", help="with --episodes-of: a mask of the file, e.g. train or valid")
-    parser.add_argument("--first", type=int, help="with --episodes-of: the first K demos (of the split)")
-    args = parser.parse_args(argv)
-    return report_user_errors(parser.prog, lambda: _run(args))
+@dataclass
+class ConvertRobomimicConfig:
+    """`pacdp-convert-robomimic`: convert a robomimic low-dim hdf5 file into a LeRobotDataset, or print the
+    `--dataset.episodes` list of a split / first-K selection of a converted one (`--episodes_of`)."""
+
+    hdf5: Path | None = None  # robomimic file, e.g. lift/ph/low_dim.hdf5
+    output_root: Path | None = None  # the dataset directory to create
+    repo_id: str | None = None  # default: local/robomimic_<task>
+    task: str | None = None  # the expected task (lift, can, square, transport, tool_hang); default: the file's
+    max_demos: int | None = None  # convert only the first N demos
+    overwrite: bool = False  # replace a LeRobotDataset already at output_root
+    episodes_of: Path | None = None  # a converted dataset: print a --dataset.episodes list of it
+    split: str | None = None  # with episodes_of: a mask of the file, e.g. train or valid
+    first: int | None = None  # with episodes_of: the first K demos (of the split)
 
 
-def _run(args: argparse.Namespace) -> int:
-    if args.episodes_of is not None:
-        if args.hdf5 is not None or args.output_root is not None:
-            raise UserInputError("--episodes-of does not convert: drop --hdf5/--output-root.")
-        print(episodes_argument(select_episodes(args.episodes_of, args.split, args.first)))
+def _run(cfg: ConvertRobomimicConfig) -> int:
+    if cfg.episodes_of is not None:
+        if cfg.hdf5 is not None or cfg.output_root is not None:
+            raise UserInputError("--episodes_of does not convert: drop --hdf5/--output_root.")
+        print(episodes_argument(select_episodes(cfg.episodes_of, cfg.split, cfg.first)))
         return 0
-    if args.hdf5 is None or args.output_root is None:
-        raise UserInputError("pass --hdf5 FILE --output-root DIR to convert, or --episodes-of DATASET_ROOT.")
-    if args.split is not None or args.first is not None:
-        raise UserInputError("--split/--first select episodes of a converted dataset: use them with --episodes-of.")
+    if cfg.hdf5 is None or cfg.output_root is None:
+        raise UserInputError("pass --hdf5=FILE --output_root=DIR to convert, or --episodes_of=DATASET_ROOT.")
+    if cfg.split is not None or cfg.first is not None:
+        raise UserInputError("--split/--first select episodes of a converted dataset: use them with --episodes_of.")
     quiet_dataset_writing()
     root = convert_robomimic_hdf5(
-        args.hdf5, args.output_root, args.repo_id, args.task, args.max_demos, args.overwrite, progress=True
+        cfg.hdf5, cfg.output_root, cfg.repo_id, cfg.task, cfg.max_demos, cfg.overwrite, progress=True
     )
     meta = load_metadata(root)
-    repo_id = args.repo_id or f"local/robomimic_{meta['task']}"
+    repo_id = cfg.repo_id or f"local/robomimic_{meta['task']}"
     splits = ", ".join(f"{k}: {len(v)}" for k, v in meta["splits"].items()) or "none"
     print(
         f"Wrote {len(meta['demos'])} {meta['task']} demos ({meta['num_frames']} frames) as {repo_id} to {root}\n"
@@ -464,6 +455,11 @@ def _run(args: argparse.Namespace) -> int:
         f"Evaluate: lerobot-eval ... {meta['eval_hint']}"
     )
     return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`pacdp-convert-robomimic`: exits 2 with a one-line message (no traceback) on bad input."""
+    return run_draccus_cli("pacdp-convert-robomimic", ConvertRobomimicConfig, _run, argv)
 
 
 if __name__ == "__main__":

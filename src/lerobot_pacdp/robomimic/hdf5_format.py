@@ -59,31 +59,30 @@ def write_robomimic_hdf5(
 
     path = Path(path)
     masks = split_masks(len(demos)) if masks is None else masks
-    with staged_file(path) as tmp:
-        with h5py.File(tmp, "w") as f:
-            data = f.create_group("data")
-            total = 0
-            for i, demo in enumerate(demos):
-                group = data.create_group(f"demo_{i}")
-                group.attrs["num_samples"] = len(demo)
-                if demo.model_file:
-                    group.attrs["model_file"] = demo.model_file
-                for key, value in demo.extra_attrs.items():
-                    group.attrs[key] = value
-                group.create_dataset("states", data=np.asarray(demo.states, dtype=np.float64))
-                group.create_dataset("actions", data=np.asarray(demo.actions, dtype=np.float64))
-                group.create_dataset("rewards", data=np.asarray(demo.rewards, dtype=np.float64))
-                group.create_dataset("dones", data=np.asarray(demo.dones, dtype=np.int64))
-                for name, obs in (("obs", demo.obs), ("next_obs", demo.next_obs)):
-                    obs_group = group.create_group(name)
-                    for key, value in obs.items():
-                        obs_group.create_dataset(key, data=np.asarray(value))
-                total += len(demo)
-            data.attrs["total"] = total
-            data.attrs["env_args"] = json.dumps(dict(env_args))
-            for key, value in (data_attrs or {}).items():
-                data.attrs[key] = value
-            mask = f.create_group("mask")
-            for name, demo_names in masks.items():
-                mask.create_dataset(name, data=np.array([n.encode() for n in demo_names], dtype="S"))
+    with staged_file(path) as tmp, h5py.File(tmp, "w") as f:
+        data = f.create_group("data")
+        total = 0
+        for i, demo in enumerate(demos):
+            group = data.create_group(f"demo_{i}")
+            group.attrs["num_samples"] = len(demo)
+            if demo.model_file:
+                group.attrs["model_file"] = demo.model_file
+            for key, value in demo.extra_attrs.items():
+                group.attrs[key] = value
+            group.create_dataset("states", data=np.asarray(demo.states, dtype=np.float64))
+            group.create_dataset("actions", data=np.asarray(demo.actions, dtype=np.float64))
+            group.create_dataset("rewards", data=np.asarray(demo.rewards, dtype=np.float64))
+            group.create_dataset("dones", data=np.asarray(demo.dones, dtype=np.int64))
+            for name, obs in (("obs", demo.obs), ("next_obs", demo.next_obs)):
+                obs_group = group.create_group(name)
+                for key, value in obs.items():
+                    obs_group.create_dataset(key, data=np.asarray(value))
+            total += len(demo)
+        data.attrs["total"] = total
+        data.attrs["env_args"] = json.dumps(dict(env_args))
+        for key, value in (data_attrs or {}).items():
+            data.attrs[key] = value
+        mask = f.create_group("mask")
+        for name, demo_names in masks.items():
+            mask.create_dataset(name, data=np.array([n.encode() for n in demo_names], dtype="S"))
     return path

@@ -5,13 +5,12 @@ actions (`[dx, dy, dz, drx, dry, drz, gripper]` in [-1, 1]; 1 unit = 5 cm / 0.5 
 machine per task with a proportional controller in position and in gripper yaw. Optional Gaussian action
 noise (on the arm dimensions) makes the demonstrations diverse; only successful episodes are written.
 
-    pacdp-scripted-demos --task lift --num-demos 10 --output demos.hdf5 --seed 0 [--action-noise 0.05]
+    pacdp-scripted-demos --task=lift --num_demos=10 --output=demos.hdf5 --seed=0 [--action_noise=0.05]
 
 The output has the schema of the released robomimic `low_dim.hdf5` files (recorded with robosuite 1.5,
 so convert it and evaluate with the native layout, `--env.robosuite_compat=1.5`, the default).
 """
 
-import argparse
 import json
 import math
 import sys
@@ -22,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lerobot_pacdp.cli_errors import UserInputError, run_draccus_cli
 from lerobot_pacdp.robomimic.hdf5_format import ENV_TYPE_ROBOSUITE, Demo, split_masks, write_robomimic_hdf5
 from lerobot_pacdp.robomimic.tasks import FPS, RobomimicTask, get_task
 
@@ -439,14 +439,14 @@ def collect_demos(
 
     robomimic_task = get_task(task)
     if robomimic_task.name not in EXPERTS:
-        raise ValueError(
+        raise UserInputError(
             f"no scripted expert for {robomimic_task.name!r}; scripted experts exist for {', '.join(EXPERTS)} "
             "(Transport and ToolHang need the released human demos)."
         )
     if num_demos < 1:
-        raise ValueError(f"--num-demos must be >= 1, got {num_demos}.")
+        raise UserInputError(f"--num_demos must be >= 1, got {num_demos}.")
     if action_noise < 0:
-        raise ValueError(f"--action-noise must be >= 0, got {action_noise}.")
+        raise UserInputError(f"--action_noise must be >= 0, got {action_noise}.")
     max_attempts = max_attempts or 3 * num_demos
     env = RobomimicEnv(robomimic_task.name, render_mode=None)
     expert = EXPERTS[robomimic_task.name](env.robosuite_env, np.random.default_rng(seed), action_noise)
@@ -493,61 +493,57 @@ def measure_success_rate(task: str, episodes: int, seed: int = 0, action_noise: 
     return stats
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """`pacdp-scripted-demos`: exits 2 with a one-line message on bad input."""
-    parser = argparse.ArgumentParser(
-        prog="pacdp-scripted-demos",
-        description="Write scripted Lift/Can/Square demonstrations as a robomimic-format hdf5 file "
-        "(successful episodes only).",
+@dataclass
+class ScriptedDemosConfig:
+    """`pacdp-scripted-demos`: scripted Lift/Can/Square demonstrations as a robomimic-format hdf5 file
+    (successful episodes only)."""
+
+    task: str | None = None  # lift, can or square
+    num_demos: int | None = None  # successful demos to write
+    output: Path | None = None  # the hdf5 file to write
+    seed: int = 0
+    action_noise: float = 0.0  # std of Gaussian noise on the arm actions
+    valid_fraction: float = 0.1  # share of the demos in mask/valid
+    max_attempts: int | None = None  # give up after this many episodes (default: 3 x num_demos)
+    overwrite: bool = False  # replace an existing output file
+
+
+def _record_and_report(cfg: ScriptedDemosConfig) -> int:
+    if cfg.task is None or cfg.num_demos is None or cfg.output is None:
+        raise UserInputError(f"pass --task=<{'|'.join(EXPERTS)}> --num_demos=N --output=FILE.hdf5.")
+    task = get_task(cfg.task)
+    if cfg.output.exists() and not cfg.overwrite:
+        raise UserInputError(f"{cfg.output} already exists; choose another --output or pass --overwrite=true.")
+    if not 0.0 <= cfg.valid_fraction < 1.0:
+        raise UserInputError(f"--valid_fraction must be in [0, 1), got {cfg.valid_fraction}.")
+    demos, stats, env_args = collect_demos(
+        task.name, cfg.num_demos, cfg.seed, cfg.action_noise, cfg.max_attempts, progress=True
     )
-    parser.add_argument("--task", required=True, help=f"one of {', '.join(EXPERTS)}")
-    parser.add_argument("--num-demos", type=int, required=True, help="number of successful demos to write")
-    parser.add_argument("--output", required=True, type=Path, help="hdf5 file to write")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--action-noise", type=float, default=0.0, help="std of Gaussian noise on arm actions")
-    parser.add_argument("--valid-fraction", type=float, default=0.1, help="share of demos in mask/valid")
-    parser.add_argument("--max-attempts", type=int, default=None, help="give up after this many episodes")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    args = parser.parse_args(argv)
-
-    def fail(message: str) -> int:
-        print(f"pacdp-scripted-demos: error: {message}", file=sys.stderr)
-        return 2
-
-    try:
-        task = get_task(args.task)
-    except ValueError as exc:
-        return fail(str(exc))
-    if args.output.exists() and not args.overwrite:
-        return fail(f"{args.output} already exists; choose another --output or pass --overwrite.")
-    if not 0.0 <= args.valid_fraction < 1.0:
-        return fail(f"--valid-fraction must be in [0, 1), got {args.valid_fraction}.")
-    try:
-        demos, stats, env_args = collect_demos(
-            task.name, args.num_demos, args.seed, args.action_noise, args.max_attempts, progress=True
-        )
-    except ValueError as exc:
-        return fail(str(exc))
     if not demos:
-        return fail(f"the {task.name} expert succeeded in none of {stats.attempts} episodes; nothing written.")
+        raise UserInputError(f"the {task.name} expert succeeded in none of {stats.attempts} episodes; nothing written.")
     write_robomimic_hdf5(
-        args.output, demos, env_args, split_masks(len(demos), args.valid_fraction, args.seed),
+        cfg.output, demos, env_args, split_masks(len(demos), cfg.valid_fraction, cfg.seed),
         data_attrs={
-            "scripted_expert": json.dumps({**stats.as_dict(), "seed": args.seed, "action_noise": args.action_noise})
+            "scripted_expert": json.dumps({**stats.as_dict(), "seed": cfg.seed, "action_noise": cfg.action_noise})
         },
-    )
+    )  # fmt: skip
     summary = stats.as_dict()
     print(
         f"{task.name}: {stats.successes}/{stats.attempts} successful episodes ({stats.success_rate:.0%}), "
         f"mean length {summary['mean_success_length']:.0f} steps, {stats.seconds:.0f} s; "
-        f"wrote {len(demos)} demos to {args.output}"
+        f"wrote {len(demos)} demos to {cfg.output}"
     )
-    if len(demos) < args.num_demos:
+    if len(demos) < cfg.num_demos:
         print(
-            f"warning: only {len(demos)} of the {args.num_demos} requested demos (max attempts reached)",
+            f"warning: only {len(demos)} of the {cfg.num_demos} requested demos (max attempts reached)",
             file=sys.stderr,
         )
     return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`pacdp-scripted-demos`: exits 2 with a one-line message on bad input."""
+    return run_draccus_cli("pacdp-scripted-demos", ScriptedDemosConfig, _record_and_report, argv)
 
 
 if __name__ == "__main__":

@@ -11,12 +11,18 @@ The object layout is robosuite 1.5's (what the environment emits natively); `com
 layout of files recorded with robosuite <= 1.4 from it. Importing this module is cheap (no robosuite).
 """
 
+import math
 from dataclasses import dataclass
+
+from lerobot_pacdp.cli_errors import UserInputError
 
 FPS = 20  # robomimic control frequency (Hz)
 PAPER_NUM_DEMOS = 200  # `ph` demos per task
 PAPER_EVAL_FRACTION = 0.3  # 140 training / 60 held-out demos
+PAPER_HELDOUT_DEMOS = math.ceil(PAPER_NUM_DEMOS * PAPER_EVAL_FRACTION)  # as LeRobot's eval split counts them: 60
+# The paper's low-data demo counts (Table II). Its "200" trains on the 140 left after holding 60 out.
 LOW_DATA_DEMO_COUNTS = (20, 40, 80, 200)
+LOW_DATA_TRAINING_DEMOS = tuple(min(n, PAPER_NUM_DEMOS - PAPER_HELDOUT_DEMOS) for n in LOW_DATA_DEMO_COUNTS)
 
 # Per-robot proprioception that Diffusion Policy observes (robomimic key, size).
 PROPRIO_KEYS: tuple[tuple[str, int], ...] = (("eef_pos", 3), ("eef_quat", 4), ("gripper_qpos", 2))
@@ -213,7 +219,7 @@ def get_task(name: str) -> RobomimicTask:
     key = str(name).strip()
     task = TASKS.get(key.lower().replace("-", "_")) or _BY_ENV_NAME.get(key)
     if task is None:
-        raise ValueError(f"unknown robomimic task {name!r}; choose one of {', '.join(TASK_NAMES)}.")
+        raise UserInputError(f"unknown robomimic task {name!r}; choose one of {', '.join(TASK_NAMES)}.")
     return task
 
 

@@ -9,16 +9,22 @@
   and a cosine decay over 3000 steps, chosen from the measured curves in results/recipes/ (DP's lr 1e-4
   with 500 warm-up steps is sized for 10^5-10^6 steps and leaves PAC-DP far from converged at 3000).
 
-Regenerate after changing the task table: `python -m lerobot_pacdp.robomimic.train_configs [configs/robomimic]`
-(a test checks the files agree with the table).
+Regenerate after changing the task table: `python -m lerobot_pacdp.robomimic.train_configs` (into the
+package's `configs/robomimic`, which the checkout's `configs/` links to; `--output_dir=DIR` elsewhere). A
+test checks the files agree with the table.
 """
 
 import json
 import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
-from lerobot_pacdp.robomimic import compat
+from lerobot_pacdp.atomic_io import write_text_atomic
+from lerobot_pacdp.cli_errors import run_draccus_cli
+from lerobot_pacdp.config_files import CONFIGS_DIR
 from lerobot_pacdp.configuration_pacdp import PacdpConfig
+from lerobot_pacdp.robomimic import compat
 from lerobot_pacdp.robomimic.tasks import PAPER_EVAL_FRACTION, PAPER_NUM_DEMOS, TASKS, get_task
 
 # rho and delta: PacdpConfig's defaults are the paper's (its single source).
@@ -111,11 +117,25 @@ def write_all(directory: str | Path) -> list[Path]:
     written = []
     for name, content in expected_files().items():
         path = directory / name
-        path.write_text(render(content))
+        write_text_atomic(path, render(content))
         written.append(path)
     return written
 
 
-if __name__ == "__main__":
-    for written in write_all(sys.argv[1] if len(sys.argv) > 1 else "configs/robomimic"):
+@dataclass
+class TrainConfigsConfig:
+    output_dir: Path = CONFIGS_DIR / "robomimic"  # where the config files are written
+
+
+def _write_and_list(cfg: TrainConfigsConfig) -> int:
+    for written in write_all(cfg.output_dir):
         print(written)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_draccus_cli("python -m lerobot_pacdp.robomimic.train_configs", TrainConfigsConfig, _write_and_list, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

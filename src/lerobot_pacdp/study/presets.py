@@ -1,54 +1,37 @@
 """The study presets: every number a study uses is set here once (or read from the file that owns it).
 
-- `cpu`: PushT from the real demos in `../shared/data/pusht`, the project's CPU U-Net
-  (configs/pusht/pacdp_cpu.json: down_dims 64/128/256, step embedding 64, the U-Net of
-  `benchmarks/speed.py --preset cpu`), 20 and 40 training demos, 20 held-out demos per seed,
-  DP / BDP / PAC-DP, seeds 0 and 1, 1200 steps at batch 64, a checkpoint every 120 steps.
-  Measured on the 2-core CPU machine (lerobot-train, one thread per run, other jobs running):
-  0.45 s/step (0.17 s update + 0.28 s LeRobot data loading; data loading is single-threaded Python,
-  so two runs side by side (`jobs=2`) nearly double the throughput). 12 runs x 1200 steps x 0.45 s / 2
-  jobs = 54 min of training, plus ~1 min data conversion and ~5 min of metrics: about an hour.
-  The learning rate is raised to 1e-3 with a 50-step warm-up (the diffusion preset's 1e-4 / 500 steps
-  is sized for 10^5-10^6 steps) so 1200 steps fit the data well and DP can overfit within the run.
-  `long_pair=true` instead trains BDP and PAC-DP (and DP beside them) on 20 demos for 20k steps at batch 16
-  (320k samples, ~130 epochs of the 20 demos). Batch 16 roughly halves the data-loading-bound step
-  (0.24 s/step per core), so the three runs fit in one ~2 h CPU session (`jobs=3`: ~8.4 steps/s in all)
-  instead of ~2.5 h each at batch 64. `long_pair_chunk_steps` at a time, resumable across sessions.
-- `paper`: paper Sec. IV on a GPU: PushT (configs/pusht/pacdp_paper.json: 10^6 steps, batch 256, paper
+- `cpu`: PushT from Diffusion Policy's real demos (`--pusht_zarr`), the project's CPU U-Net
+  (configs/pusht/pacdp_cpu.json: down_dims 64/128/256, step embedding 64, the U-Net of the `cpu` speed
+  benchmark), 20 and 40 training demos, 20 held-out demos per seed, DP / BDP / PAC-DP, seeds 0 and 1,
+  1200 steps at batch 64, a checkpoint every 120 steps, two runs side by side. The learning rate is
+  raised to 1e-3 with a 50-step warm-up (the diffusion preset's 1e-4 / 500 steps is sized for 10^5-10^6
+  steps) so 1200 steps fit the data well and DP can overfit within the run. `long_pair=true` instead
+  trains DP, BDP and PAC-DP on 20 demos for 20k steps at batch 16 (~130 epochs of the 20 demos), in
+  chunks of `long_pair_chunk_steps`, resumable across sessions.
+- `paper`: paper Sec. IV on GPUs: PushT (configs/pusht/pacdp_paper.json: 10^6 steps, batch 256, paper
   U-Net) and the five robomimic tasks (`robomimic.train_configs.paper_config`, steps and lambda from
-  `robomimic.tasks.TASKS`), 60 held-out demos per seed, training demos 20/40/80/140 (the paper's "200
-  demonstrations" = 140 trained on + 60 held out; Transport and ToolHang only at 140), seeds 0-2, the
-  paper's grid lambda in {1e-5, 1e-6} (plus each task's own lambda) x rho in {-3.5, -4, -4.5, -5}.
+  `robomimic.tasks.TASKS`), the paper's held-out demos per seed and low-data training-demo counts
+  (`robomimic.tasks`; Transport and ToolHang only at the largest), seeds 0-2, the paper's grid lambda in
+  {1e-5, 1e-6} (plus each task's own lambda) x rho in {-3.5, -4, -4.5, -5}.
+
+Measured run times are in the README (Reproduction study, Results), not here.
 """
 
-import json
+import copy
 from dataclasses import dataclass, replace
-from pathlib import Path
 
-from lerobot_pacdp.robomimic.tasks import PAPER_NUM_DEMOS, TASKS
+from lerobot_pacdp.cli_errors import UserInputError
+from lerobot_pacdp.config_files import load_config_file
+from lerobot_pacdp.robomimic.tasks import LOW_DATA_TRAINING_DEMOS, PAPER_HELDOUT_DEMOS, PAPER_NUM_DEMOS, TASKS
 from lerobot_pacdp.robomimic.train_configs import PAPER_PRIOR_RHO, paper_config
-
-REPO_ROOT = Path(__file__).resolve().parents[3]
-CONFIGS_DIR = REPO_ROOT / "configs"
-SHARED_PUSHT_ZARR = REPO_ROOT.parent / "shared" / "data" / "pusht" / "pusht_cchi_v7_replay.zarr"
 
 PAPER_KL_GRID = (1e-5, 1e-6)  # Sec. IV-B "Hyperparameter Sensitivity Analysis"
 PAPER_RHO_GRID = (-3.5, -4.0, -4.5, -5.0)
 PAPER_SEEDS = (0, 1, 2)
-PAPER_HELDOUT = PAPER_NUM_DEMOS - 140  # 30% of 200 demos held out (Table I)
-PAPER_LOW_DATA_DEMOS = (20, 40, 80, 140)  # Table II's 20/40/80/200 demos; "200" trains on 140 of them
 
 
-class StudyError(ValueError):
-    """A user-facing problem with a study's settings or inputs; the CLI prints it and exits 2."""
-
-
-def load_config_file(name: str) -> dict:
-    """A lerobot-train config file of this repository (the single source of its settings)."""
-    path = CONFIGS_DIR / name
-    if not path.is_file():
-        raise StudyError(f"{path} is missing; the study presets read their base settings from it.")
-    return json.loads(path.read_text())
+class StudyError(UserInputError):
+    """A problem with a study's settings or inputs; the CLI prints it and exits 2."""
 
 
 @dataclass(frozen=True)
@@ -56,9 +39,10 @@ class TaskPreset:
     """One benchmark task of a study.
 
     `train_config` is the base lerobot-train config (dataset repo id, env, policy, batch, workers); the
-    runner replaces the episodes, seed, steps, method and output dir per run. The dataset lives at
-    `dataset_root` (relative paths are under the study's output dir), converted from `pusht_zarr` when
-    given and missing, else it must exist (`None`: LeRobot's default location for the repo id).
+    plan replaces the episodes, seed, steps, method and output dir per run. The dataset lives at
+    `dataset_root` (relative paths are under the study's output dir; `None`: LeRobot's default location
+    for the repo id). With `from_pusht_zarr` a missing dataset is converted from the PushT replay buffer
+    the study is given (`--pusht_zarr`); otherwise it must exist.
     """
 
     name: str
@@ -69,7 +53,7 @@ class TaskPreset:
     save_freq: int
     reference_kl_weight: float  # Table I / Fig. 3 PAC-DP lambda (the task's paper value)
     dataset_root: str | None = None
-    pusht_zarr: str | None = None
+    from_pusht_zarr: bool = False
     num_episodes: int | None = None  # expected demos in the dataset (planning before it is converted)
 
     @property
@@ -79,11 +63,12 @@ class TaskPreset:
 
 @dataclass(frozen=True)
 class PerfRow:
-    """One row of the performance table: a `benchmarks/speed.py` call (U-Net preset, batch, extra flags)."""
+    """One row of the performance table: a run of the speed benchmark (`lerobot_pacdp.speed_benchmark`)."""
 
-    speed_preset: str
+    speed_preset: str  # the benchmark's U-Net preset
     batch_size: int
-    extra_args: tuple[str, ...] = ()
+    train_steps: int | None = None  # timed training steps per policy (None: the benchmark preset's)
+    latency_calls: int | None = None  # timed action chunks per policy (None: the benchmark preset's)
 
 
 @dataclass(frozen=True)
@@ -134,7 +119,7 @@ def _cpu_preset() -> Preset:
         save_freq=120,
         reference_kl_weight=base["policy"]["kl_weight"],
         dataset_root="data/pusht",
-        pusht_zarr=str(SHARED_PUSHT_ZARR),
+        from_pusht_zarr=True,
     )
     return Preset(
         name="cpu",
@@ -152,8 +137,8 @@ def _cpu_preset() -> Preset:
         success_episodes=10,
         success_last_k=1,
         device="cpu",
-        # The paper U-Net takes ~15 s per PAC-DP step on these 2 cores: 10 timed steps and 5 chunks each.
-        perf_rows=(PerfRow("cpu", 64), PerfRow("paper", 8, ("--train-steps", "10", "--latency-calls", "5"))),
+        # The paper U-Net is slow on a CPU: 10 timed steps and 5 chunks each.
+        perf_rows=(PerfRow("cpu", 64), PerfRow("paper", 8, train_steps=10, latency_calls=5)),
         long_pair_steps=20_000,
         long_pair_save_freq=1_000,
         long_pair_chunk_steps=6_000,
@@ -162,26 +147,26 @@ def _cpu_preset() -> Preset:
 
 
 def _paper_task(
-    name: str, config: dict, kl: float, demos: tuple[int, ...], root: str | None, zarr: str | None = None,
+    name: str, config: dict, kl: float, demos: tuple[int, ...], root: str | None, from_pusht_zarr: bool = False,
     num_episodes: int | None = None,
 ) -> TaskPreset:
     """A task at paper scale from its lerobot-train config (steps and save_freq included)."""
-    config = json.loads(json.dumps(config))
-    config["dataset"].pop("episodes", None)  # the runner picks them per (demos, seed)
+    config = copy.deepcopy(config)
+    config["dataset"].pop("episodes", None)  # the plan picks them per (demos, seed)
     steps, save_freq = config.pop("steps"), config.pop("save_freq")
-    return TaskPreset(name, config, demos, PAPER_HELDOUT, steps, save_freq, kl, root, zarr, num_episodes)
+    return TaskPreset(
+        name, config, demos, PAPER_HELDOUT_DEMOS, steps, save_freq, kl, root, from_pusht_zarr, num_episodes
+    )
 
 
 def _paper_preset() -> Preset:
     pusht = load_config_file("pusht/pacdp_paper.json")
     tasks = [
-        _paper_task(
-            "pusht", pusht, pusht["policy"]["kl_weight"], PAPER_LOW_DATA_DEMOS, "data/pusht", str(SHARED_PUSHT_ZARR)
-        )
+        _paper_task("pusht", pusht, pusht["policy"]["kl_weight"], LOW_DATA_TRAINING_DEMOS, "data/pusht", True)
     ]
     for name, task in TASKS.items():
-        demos = PAPER_LOW_DATA_DEMOS if task.train_steps < 500_000 else PAPER_LOW_DATA_DEMOS[-1:]
-        tasks.append(_paper_task(name, paper_config(name), task.kl_weight, demos, None, None, PAPER_NUM_DEMOS))
+        demos = LOW_DATA_TRAINING_DEMOS if task.train_steps < 500_000 else LOW_DATA_TRAINING_DEMOS[-1:]
+        tasks.append(_paper_task(name, paper_config(name), task.kl_weight, demos, None, False, PAPER_NUM_DEMOS))
     return Preset(
         name="paper",
         tasks=tuple(tasks),
@@ -213,6 +198,20 @@ def get_preset(name: str) -> Preset:
     if name not in PRESETS:
         raise StudyError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}.")
     return PRESETS[name]()
+
+
+def long_pair_preset(preset: Preset) -> Preset:
+    """The preset's long runs instead of its study: its first task and seed, `long_pair_demos` training demos,
+    `long_pair_steps` steps (and `long_pair_batch_size`, if set)."""
+    if preset.long_pair_steps < 1:
+        raise StudyError(f"preset {preset.name!r} defines no long pair.")
+    batch = {} if preset.long_pair_batch_size is None else {"batch_size": preset.long_pair_batch_size}
+    task = preset.tasks[0]
+    task = replace(task, demos=(preset.long_pair_demos,), steps=preset.long_pair_steps,
+                   save_freq=preset.long_pair_save_freq, train_config={**task.train_config, **batch})  # fmt: skip
+    long_pair = replace(preset, tasks=(task,), seeds=preset.seeds[:1])
+    validate(long_pair)
+    return long_pair
 
 
 def with_overrides(

@@ -1,9 +1,8 @@
-"""Tables I-III, Fig. 3-style plots and the performance table of a study.
+"""Tables I-III, Fig. 3-style plots, the training-dynamics and performance tables of a study.
 
-The metrics come from `lerobot_pacdp.metrics.sweep` (NPE and NLL bound on every checkpoint, on the
-seed's held-out demos) plus the success rate of each run's last checkpoints (the sweep's
-`success_rate`, LeRobot's own rollout loop). Per run, a metric is the mean over its last `last_k`
-checkpoints (`sweep.summarize`); a cell is mean +- std (ddof=1) over seeds.
+The rows come from `lerobot_pacdp.study.evaluation` (one per checkpoint: NPE, NLL bound, success rate
+and the run's spec). Per run, a metric is the mean over its last `last_k` checkpoints (`sweep.summarize`);
+a cell is mean +- std (ddof=1) over seeds.
 
 - Table I: per task at its largest demo count: DP, BDP (reference rho), PAC-DP (reference lambda, rho).
 - Table II: per task x demos: DP, BDP best over rho, PAC-DP best over the lambda x rho grid.
@@ -18,89 +17,24 @@ import json
 import logging
 import math
 import statistics
-import subprocess
-import sys
 from collections import defaultdict
 from pathlib import Path
 
-import draccus
-
 from lerobot_pacdp.atomic_io import write_text_atomic
-from lerobot_pacdp.metrics.checkpoints import list_checkpoints, load_policy
-from lerobot_pacdp.metrics.sweep import SweepConfig, plot_metrics, run_sweep, success_rate, summarize
-from lerobot_pacdp.study.presets import REPO_ROOT, Preset
-from lerobot_pacdp.study.runner import RunSpec, run_status, write_json_atomic
+from lerobot_pacdp.metrics.sweep import plot_metrics, summarize
+from lerobot_pacdp.study.evaluation import SPEC_FIELDS
+from lerobot_pacdp.study.plan import RunSpec
+from lerobot_pacdp.study.presets import Preset
+from lerobot_pacdp.study.state import run_state
 
 logger = logging.getLogger("pacdp-study")
 
 METRICS = {"npe": "NPE", "nll_bound": "NLL bound", "success_rate": "SR"}
 HIGHER_IS_BETTER = {"npe": False, "nll_bound": False, "success_rate": True}
-SPEED_SCRIPT = REPO_ROOT / "benchmarks" / "speed.py"
-SPEED_RESULTS = REPO_ROOT / "benchmarks" / "results"
+PERFORMANCE_DIR = "performance"  # under the study's output dir: the speed benchmark's JSON per row
 
 
-# ---------------------------------------------------------------------------------------------- metrics
-
-
-def _spec_fields(spec: RunSpec) -> dict:
-    return {"task": spec.task, "demos": spec.demos, "seed": spec.seed, "method": spec.method,
-            "kl_weight": spec.kl_weight, "prior_rho": spec.prior_rho, "name": spec.name}  # fmt: skip
-
-
-def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfinished: bool = False) -> list[dict]:
-    """One row per checkpoint of every finished run (the sweep's columns plus the run's spec); with
-    `unfinished`, also of runs stopped before their last step, up to their last checkpoint."""
-    wanted = ("done", "resume") if unfinished else ("done",)
-    groups: dict[tuple, list[RunSpec]] = defaultdict(list)
-    for spec in specs:
-        if run_status(spec, output_dir)[0] in wanted:
-            groups[(spec.group, spec.task, spec.seed)].append(spec)
-    rows = []
-    for (group, task, seed), runs in groups.items():
-        logger.info("metrics: %s/%s seed %d, %d runs on %d held-out demos", group, task, seed, len(runs),
-                    len(runs[0].heldout_episodes))  # fmt: skip
-        sweep = SweepConfig(
-            runs=",".join(str(s.train_dir(output_dir)) for s in runs),
-            labels=",".join(s.name for s in runs),
-            output_dir=output_dir / "metrics" / group / task / f"seed{seed}",
-            episodes=",".join(map(str, runs[0].heldout_episodes)),
-            batch_size=preset.metrics_batch_size,
-            nll_steps=preset.nll_steps,
-            frame_stride=preset.frame_stride,
-            last_k=preset.last_k,
-            device=preset.device,
-        )
-        by_name = {s.name: s for s in runs}
-        sweep_rows, _ = run_sweep(sweep)
-        rows += [row | _spec_fields(by_name[row["label"]]) | {"group": group} for row in sweep_rows]
-        if preset.success_episodes > 0:
-            add_success_rates(preset, runs, rows, output_dir, output_dir / "metrics" / group / task / f"seed{seed}")
-    return rows
-
-
-def add_success_rates(preset: Preset, runs: list[RunSpec], rows: list[dict], output_dir: Path, cache_dir: Path) -> None:
-    """Success rate of each run's last `success_last_k` checkpoints, cached in `success.json`."""
-    from lerobot.envs.configs import EnvConfig
-
-    task = preset.task(runs[0].task)
-    env_dict = task.train_config["env"]
-    settings = {"episodes": preset.success_episodes, "seed": 0, "env": env_dict}
-    cache_file = cache_dir / "success.json"
-    cache = json.loads(cache_file.read_text()) if cache_file.is_file() else {}
-    rates = cache.get("rates", {}) if cache.get("settings") == settings else {}
-    wanted = [c for s in runs for _, c in list_checkpoints(s.train_dir(output_dir))[-preset.success_last_k :]]
-    todo = [c for c in wanted if str(c) not in rates]
-    if todo:
-        env_cfg = draccus.decode(EnvConfig, env_dict)
-        n_envs = min(10, preset.success_episodes)
-        for ckpt in todo:
-            loaded = load_policy(ckpt, preset.device)
-            rates[str(ckpt)] = success_rate(loaded, env_cfg, n_envs, preset.success_episodes, seed=0)
-            logger.info("success rate %s: %.3f over %d rollouts", ckpt, rates[str(ckpt)], preset.success_episodes)
-            write_json_atomic(cache_file, {"settings": settings, "rates": rates})
-    for row in rows:
-        if row["checkpoint"] in rates:
-            row["success_rate"] = rates[row["checkpoint"]]
+# ---------------------------------------------------------------------------------------------- per run
 
 
 def per_run_values(rows: list[dict], last_k: int) -> list[dict]:
@@ -112,7 +46,7 @@ def per_run_values(rows: list[dict], last_k: int) -> list[dict]:
     for run_rows in by_run.values():
         summary = summarize([r | {"label": "run"} for r in run_rows], last_k)["run"]
         first = run_rows[0]
-        entry = {k: first[k] for k in ("task", "demos", "seed", "method", "kl_weight", "prior_rho", "name", "group")}
+        entry = {k: first[k] for k in SPEC_FIELDS}
         entry["last_step"] = max(r["step"] for r in run_rows)
         entry.update({m: summary[m]["mean"] if m in summary else None for m in METRICS})
         result.append(entry)
@@ -295,27 +229,29 @@ def render_dynamics(dynamics: list[dict]) -> str:
 # ------------------------------------------------------------------------------------------ performance
 
 
-def performance_table(preset: Preset, measure: bool) -> str:
-    """PAC-DP / DP ratios from `benchmarks/speed.py` results (measured first when `measure`)."""
+def performance_table(preset: Preset, results_dir: Path, measure: bool) -> str:
+    """PAC-DP / DP ratios from the speed benchmark's JSON in `results_dir` (measured first when `measure`)."""
     import torch
+
+    from lerobot_pacdp.speed_benchmark import BenchmarkRequest, run_benchmark
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
     lines = ["| U-Net preset | batch | device | train step | mean-mode chunk | sample-mode chunk | peak memory |",
              "|---|---|---|---|---|---|---|"]  # fmt: skip
     for row in preset.perf_rows:
-        speed_preset, batch = row.speed_preset, row.batch_size
-        result_file = SPEED_RESULTS / f"speed_{speed_preset}_b{batch}_{device}.json"
+        request = BenchmarkRequest(preset=row.speed_preset, device=device, output_dir=results_dir,
+                                   batch_size=row.batch_size, train_steps=row.train_steps,
+                                   latency_calls=row.latency_calls)  # fmt: skip
         if measure:
-            args = ["--preset", speed_preset, "--batch-size", str(batch), "--device", device, *row.extra_args]
-            logger.info("performance: benchmarks/speed.py %s", " ".join(args))
-            subprocess.run([sys.executable, str(SPEED_SCRIPT), *args], check=True)
-        if not result_file.is_file():
-            lines.append(f"| {speed_preset} | {batch} | {device} | not measured (`pacdp-study --perf=true`) | | | |")
+            logger.info("performance: %s", request)
+            run_benchmark(request)
+        if not request.result_file().is_file():
+            lines.append(f"| {row.speed_preset} | {row.batch_size} | {device} | not measured (`pacdp-study --perf=true`) | | | |")
             continue
-        result = json.loads(result_file.read_text())
+        result = json.loads(request.result_file().read_text())
         r = result["ratios_pacdp_over_dp"]
         dims = "/".join(map(str, result["config"]["down_dims"]))
-        lines.append(f"| {speed_preset} ({dims}) | {batch} | {result['device']} | {r['train_step']:.2f} | "
+        lines.append(f"| {row.speed_preset} ({dims}) | {row.batch_size} | {result['device']} | {r['train_step']:.2f} | "
                      f"{r['mean_mode_latency']:.2f} | {r['sample_mode_latency']:.2f} | {r['peak_memory']:.2f} |")  # fmt: skip
     return "## Performance: PAC-DP / DP ratios, each row measured in one run (DDIM 10, one action chunk)\n\n" + "\n".join(lines) + "\n"
 
@@ -324,17 +260,16 @@ def performance_table(preset: Preset, measure: bool) -> str:
 
 
 def report(
-    preset: Preset, specs: list[RunSpec], output_dir: Path, long_pair: bool = False, perf: bool = False,
-    unfinished: bool = False,
+    preset: Preset, specs: list[RunSpec], rows: list[dict], output_dir: Path, long_pair: bool = False,
+    perf: bool = False,
 ) -> None:
-    """Metrics of every finished run (and unfinished ones with `unfinished`), then tables, CSVs and plots
-    under `output_dir/results[_long]`."""
-    rows = evaluate_runs(preset, specs, output_dir, unfinished)
+    """Tables, CSVs and plots of `rows` (`evaluation.evaluate_runs`) under `output_dir/results[_long]`."""
     results = output_dir / ("results_long" if long_pair else "results")
-    reported = {r["run"] for r in rows}
+    reported = {(r["group"], r["task"], r["name"]) for r in rows}
     if len(reported) < len(specs):
         logger.warning("tables cover %d of %d runs: the others are not finished yet.", len(reported), len(specs))
-    short = [s.name for s in specs if str(s.train_dir(output_dir)) in reported and run_status(s, output_dir)[0] != "done"]
+    short = [s.name for s in specs
+             if (s.group, s.task, s.name) in reported and run_state(s, output_dir).status == "resume"]  # fmt: skip
     if short:
         logger.warning("reported before their last step (see last_step in runs.csv and the dynamics table): %s", short)
     if not rows:
@@ -344,7 +279,8 @@ def report(
     per_run = per_run_values(rows, preset.last_k)
     cells = build_tables(seed_statistics(per_run), references)
     dynamics = dynamics_rows(rows)
-    markdown = "\n".join([render_markdown(cells, preset.last_k), render_dynamics(dynamics), performance_table(preset, perf)])
+    performance = performance_table(preset, output_dir / PERFORMANCE_DIR, perf)
+    markdown = "\n".join([render_markdown(cells, preset.last_k), render_dynamics(dynamics), performance])
     write_text_atomic(results / "runs.csv", _csv(per_run))
     write_text_atomic(results / "dynamics.csv", _csv(dynamics))
     write_text_atomic(results / "tables.csv", _csv(cells))

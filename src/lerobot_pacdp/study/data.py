@@ -1,0 +1,68 @@
+"""The datasets of a study: where each task's LeRobotDataset lives, how many demos it has, converting PushT's."""
+
+import json
+import logging
+import time
+from pathlib import Path
+
+from lerobot_pacdp.study.presets import StudyError, TaskPreset
+
+logger = logging.getLogger("pacdp-study")
+
+
+def dataset_root(task: TaskPreset, output_dir: Path) -> Path | None:
+    """Where the task's dataset lives (None: LeRobot's default location for its repo id)."""
+    if task.dataset_root is None:
+        return None
+    root = Path(task.dataset_root)
+    return root if root.is_absolute() else output_dir / root
+
+
+def _dataset_location(task: TaskPreset, output_dir: Path) -> Path:
+    from lerobot.utils.constants import HF_LEROBOT_HOME
+
+    return dataset_root(task, output_dir) or HF_LEROBOT_HOME / task.repo_id
+
+
+def _missing_pusht_zarr(task: TaskPreset, root: Path) -> StudyError:
+    return StudyError(
+        f"{task.name}: no dataset at {root} and no PushT replay buffer to convert it from; pass "
+        "--pusht_zarr=<pusht_cchi_v7_replay.zarr> (from Diffusion Policy's pusht.zip)."
+    )
+
+
+def count_episodes(task: TaskPreset, output_dir: Path, pusht_zarr: Path | None) -> int:
+    """Demos in the task's dataset (or in the PushT replay buffer it will be converted from)."""
+    root = _dataset_location(task, output_dir)
+    info = root / "meta" / "info.json"
+    if info.is_file():
+        return int(json.loads(info.read_text())["total_episodes"])
+    if task.from_pusht_zarr:
+        if pusht_zarr is None:
+            raise _missing_pusht_zarr(task, root)
+        from lerobot_pacdp.datasets.pusht_zarr import load_replay_buffer
+
+        return load_replay_buffer(pusht_zarr).num_episodes
+    if task.num_episodes is not None:
+        return task.num_episodes
+    raise StudyError(f"{task.name}: no dataset at {root}; convert its demos there first.")
+
+
+def prepare_dataset(task: TaskPreset, output_dir: Path, pusht_zarr: Path | None) -> None:
+    """Convert the PushT demos into the study's output dir once (all of them: indices stay the zarr's)."""
+    root = _dataset_location(task, output_dir)
+    if (root / "meta" / "info.json").is_file():
+        return
+    if not task.from_pusht_zarr:
+        raise StudyError(
+            f"{task.name}: the dataset {task.repo_id} is missing at {root}; convert it first "
+            "(pacdp-convert-robomimic for robomimic tasks)."
+        )
+    if pusht_zarr is None:
+        raise _missing_pusht_zarr(task, root)
+    from lerobot_pacdp.datasets.pusht_zarr import convert_pusht_zarr
+
+    logger.info("converting the PushT demos of %s into %s ...", pusht_zarr, root)
+    start = time.monotonic()
+    convert_pusht_zarr(pusht_zarr, root, task.repo_id)
+    logger.info("converted in %.0f s", time.monotonic() - start)

@@ -1,0 +1,110 @@
+"""The metrics of a study's runs: `lerobot_pacdp.metrics.sweep` on every checkpoint, on each seed's held-out
+demos, plus the success rate of each run's last checkpoints (the sweep's `success_rate`, LeRobot's own
+rollout loop).
+
+Each (group, task, seed) keeps its rows in `<output_dir>/metrics/<group>/<task>/seed<k>/metrics.json` and
+its success rates in `success.json` beside it; rerunning reuses both. A group none of whose runs has a
+checkpoint on disk (a study whose checkpoints were deleted, or the committed `results/`) is reported from
+those files alone.
+"""
+
+import json
+import logging
+from collections import defaultdict
+from pathlib import Path
+
+import draccus
+
+from lerobot_pacdp.metrics.checkpoints import load_policy
+from lerobot_pacdp.metrics.sweep import SweepConfig, run_sweep, success_rate
+from lerobot_pacdp.study.plan import RunSpec
+from lerobot_pacdp.study.presets import Preset
+from lerobot_pacdp.study.state import run_state, write_json_atomic
+from lerobot_pacdp.train_runs import step_dirs
+
+logger = logging.getLogger("pacdp-study")
+
+SPEC_FIELDS = ("task", "demos", "seed", "method", "kl_weight", "prior_rho", "name", "group")
+
+
+def metrics_dir(output_dir: Path, group: str, task: str, seed: int) -> Path:
+    return output_dir / "metrics" / group / task / f"seed{seed}"
+
+
+def _spec_fields(spec: RunSpec) -> dict:
+    return {name: getattr(spec, name) for name in SPEC_FIELDS}
+
+
+def _stored_rows(directory: Path, names: set[str]) -> list[dict]:
+    path = directory / "metrics.json"
+    if not path.is_file():
+        return []
+    return [row for row in json.loads(path.read_text())["rows"] if row["label"] in names]
+
+
+def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfinished: bool = False) -> list[dict]:
+    """One row per checkpoint of every finished run (the sweep's columns plus the run's spec); with
+    `unfinished`, also of runs stopped before their last step, up to their last checkpoint."""
+    wanted = ("done", "resume") if unfinished else ("done",)
+    groups: dict[tuple, list[RunSpec]] = defaultdict(list)
+    for spec in specs:
+        groups[(spec.group, spec.task, spec.seed)].append(spec)
+    rows = []
+    for (group, task, seed), runs in groups.items():
+        directory = metrics_dir(output_dir, group, task, seed)
+        by_name = {s.name: s for s in runs}
+        ready = [s for s in runs if run_state(s, output_dir).status in wanted]
+        if ready:
+            logger.info("metrics: %s/%s seed %d, %d runs on %d held-out demos", group, task, seed, len(ready),
+                        len(ready[0].heldout_episodes))  # fmt: skip
+            sweep = SweepConfig(
+                runs=[s.train_dir(output_dir) for s in ready],
+                labels=[s.name for s in ready],
+                output_dir=directory,
+                episodes=list(ready[0].heldout_episodes),
+                batch_size=preset.metrics_batch_size,
+                nll_steps=preset.nll_steps,
+                frame_stride=preset.frame_stride,
+                last_k=preset.last_k,
+                device=preset.device,
+            )
+            group_rows, _ = run_sweep(sweep)
+        elif not any(step_dirs(s.train_dir(output_dir)) for s in runs) and (group_rows := _stored_rows(directory, set(by_name))):
+            logger.info("metrics: %s/%s seed %d from %s (no checkpoint of these runs on disk)", group, task, seed,
+                        directory / "metrics.json")  # fmt: skip
+        else:
+            continue
+        group_rows = [row | _spec_fields(by_name[row["label"]]) for row in group_rows]
+        if preset.success_episodes > 0:
+            add_success_rates(preset, group_rows, directory / "success.json", evaluate=bool(ready))
+        rows += group_rows
+    return rows
+
+
+def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path, evaluate: bool = True) -> None:
+    """Success rate of each run's last `success_last_k` checkpoints, cached in `cache_file`; with `evaluate`
+    false only cached rates are used (the checkpoints are not on disk)."""
+    task = preset.task(rows[0]["task"])
+    env_dict = task.train_config["env"]
+    settings = {"episodes": preset.success_episodes, "seed": 0, "env": env_dict}
+    cache = json.loads(cache_file.read_text()) if cache_file.is_file() else {}
+    rates = cache.get("rates", {}) if cache.get("settings") == settings else {}
+    by_run: dict[str, list[dict]] = defaultdict(list)
+    for row in rows:
+        by_run[row["run"]].append(row)
+    wanted = [r["checkpoint"] for run_rows in by_run.values()
+              for r in sorted(run_rows, key=lambda r: r["step"])[-preset.success_last_k :]]  # fmt: skip
+    todo = [c for c in wanted if c not in rates] if evaluate else []
+    if todo:
+        from lerobot.envs.configs import EnvConfig
+
+        env_cfg = draccus.decode(EnvConfig, env_dict)
+        n_envs = min(10, preset.success_episodes)
+        for ckpt in todo:  # `success_rate` makes fresh envs for each checkpoint (LeRobot's loop closes them)
+            loaded = load_policy(ckpt, preset.device)
+            rates[ckpt] = success_rate(loaded, env_cfg, n_envs, preset.success_episodes, seed=0)
+            logger.info("success rate %s: %.3f over %d rollouts", ckpt, rates[ckpt], preset.success_episodes)
+            write_json_atomic(cache_file, {"settings": settings, "rates": rates})
+    for row in rows:
+        if row["checkpoint"] in rates:
+            row["success_rate"] = rates[row["checkpoint"]]

@@ -1,0 +1,59 @@
+"""`pacdp-study --train=false` regenerates the committed results (results/study_cpu_pusht*) from their metrics files.
+
+The runs' checkpoints are long gone; what is committed is each seed's `metrics.json` (as `metrics_seed<k>.json`)
+and the per-run success rates (in `runs.csv`; a study keeps them in `success.json` beside `metrics.json`).
+"""
+
+import csv
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from lerobot_pacdp.study import runner
+from lerobot_pacdp.study.presets import get_preset
+
+from pacdp_testing import REPO_ROOT
+
+RESULTS = REPO_ROOT / "results"
+
+
+def _study_from_committed(committed: Path, out: Path, group: str) -> None:
+    """The output dir of a study whose checkpoints were deleted: its metrics and success-rate files only."""
+    env = get_preset("cpu").tasks[0].train_config["env"]
+    runs = {row["name"]: row for row in csv.DictReader((committed / "runs.csv").open())}
+    for metrics_file in sorted(committed.glob("metrics_seed*.json")):
+        seed_dir = out / "metrics" / group / "pusht" / metrics_file.stem.removeprefix("metrics_")
+        seed_dir.mkdir(parents=True)
+        shutil.copy(metrics_file, seed_dir / "metrics.json")
+        rows = json.loads(metrics_file.read_text())["rows"]
+        last = {}  # the cpu preset rolls out each run's last checkpoint only
+        for row in sorted(rows, key=lambda r: r["step"]):
+            last[row["label"]] = row["checkpoint"]
+        rates = {checkpoint: float(runs[name]["success_rate"]) for name, checkpoint in last.items()}
+        success = {"settings": {"episodes": 10, "seed": 0, "env": env}, "rates": rates}
+        (seed_dir / "success.json").write_text(json.dumps(success))
+
+
+def _until_performance(markdown: str) -> str:
+    """tables.md without its performance section (measured separately, by the speed benchmark)."""
+    return markdown.split("## Performance")[0]
+
+
+@pytest.mark.parametrize(
+    ("committed", "group", "flags"),
+    [("study_cpu_pusht", "main", []), ("study_cpu_pusht_long", "long", ["--long_pair=true", "--report_unfinished=true"])],
+)
+def test_the_committed_tables_regenerate_from_their_metrics_files(tmp_path, pusht_zarr, committed, group, flags):
+    committed = RESULTS / committed
+    _study_from_committed(committed, tmp_path, group)
+    argv = ["--preset=cpu", f"--output_dir={tmp_path}", f"--pusht_zarr={pusht_zarr}", "--train=false", *flags]
+    assert runner.main(argv) == 0
+    results = tmp_path / ("results_long" if group == "long" else "results")
+    for name in ("runs.csv", "dynamics.csv", "tables.csv"):
+        assert (results / name).read_text() == (committed / name).read_text(), name
+    assert _until_performance((results / "tables.md").read_text()) == _until_performance(
+        (committed / "tables.md").read_text()
+    )
+    assert {p.name for p in (results / "figures").iterdir()} == {p.name for p in (committed / "figures").iterdir()}
