@@ -80,7 +80,7 @@ def main() -> None:
         axes[1].plot([r["step"] for r in ckpt], [r["heldout_npe"] for r in ckpt], "o-", label=label, color=colour)
         rated = [r for r in ckpt if r["success_rate"] is not None]
         axes[2].plot([r["step"] for r in rated], [r["success_rate"] for r in rated], "o-", label=label, color=colour)
-    for ax, name in zip(axes, ("training denoising loss", "held-out NPE (EMA, posterior mean)", "success rate")):
+    for ax, name in zip(axes, ("training denoising loss", "held-out NPE (EMA, posterior mean)", "success rate"), strict=True):
         ax.set_xlabel("training step")
         ax.set_title(name)
         ax.grid(alpha=0.3)

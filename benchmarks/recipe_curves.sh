@@ -17,12 +17,12 @@ export HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1   # two runs side by side, one thread 
 mkdir -p "$out"
 case "$task" in
   lift)
-    "$bin/pacdp-scripted-demos" --task lift --num-demos 40 --seed 0 --action-noise 0.05 --output "$out/demos.hdf5" --overwrite
-    "$bin/pacdp-convert-robomimic" --hdf5 "$out/demos.hdf5" --output-root "$out/data" --repo-id local/robomimic_lift_scripted --overwrite
+    "$bin/pacdp-scripted-demos" --task=lift --num_demos=40 --seed=0 --action_noise=0.05 --output="$out/demos.hdf5" --overwrite=true
+    "$bin/pacdp-convert-robomimic" --hdf5="$out/demos.hdf5" --output_root="$out/data" --repo_id=local/robomimic_lift_scripted --overwrite=true
     config=configs/robomimic/lift_cpu.json; data=(--dataset.root="$out/data")
     env=(--env.type=robomimic --env.task=lift) ;;
   pusht)
-    "$bin/pacdp-convert-pusht" --zarr ../shared/data/pusht/pusht_cchi_v7_replay.zarr --output-root "$out/data" --episodes 0-39 --overwrite
+    "$bin/pacdp-convert-pusht" --zarr=../shared/data/pusht/pusht_cchi_v7_replay.zarr --output_root="$out/data" --episodes=0-39 --overwrite=true
     config=configs/pusht/pacdp_cpu.json; data=(--dataset.repo_id=local/pusht --dataset.root="$out/data")
     env=(--env.type=pusht --env.obs_type=environment_state_agent_pos) ;;
   *) echo "unknown task $task (lift | pusht)" >&2; exit 2 ;;
@@ -35,7 +35,7 @@ rm -rf "$out/dp" "$out/pacdp"
 "$bin/lerobot-train" --config_path="$config" "${data[@]}" "${recipe[@]}" \
   --output_dir="$out/pacdp" --wandb.enable=false > "$out/pacdp.log" 2>&1 &
 wait
-"$bin/pacdp-metrics" --runs="$out/dp,$out/pacdp" --labels=DP,PAC-DP --nll=false "${env[@]}" \
+"$bin/pacdp-metrics" --runs="[$out/dp,$out/pacdp]" --labels="[DP,PAC-DP]" --nll=false "${env[@]}" \
   --eval_episodes="${EVAL_EPISODES:-20}" --eval_batch_size=2 --output_dir="$out/curves"
 .venv/bin/python benchmarks/plot_recipe_curves.py --metrics "$out/curves/metrics.json" --log DP="$out/dp.log" \
   --log PAC-DP="$out/pacdp.log" --log-freq 100 --title "$task: DP and PAC-DP, ${EVAL_EPISODES:-20} rollouts per checkpoint" \
