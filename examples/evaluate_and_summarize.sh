@@ -2,7 +2,7 @@
 # Roll a checkpoint out with lerobot-eval, measure its held-out NPE with pacdp-metrics, and write the run's
 # summary (success rate with its 95% interval, NPE, steps, wall time) with pacdp-summarize-run.
 #
-#   bash examples/evaluate_and_summarize.sh CHECKPOINT OUTPUT_DIR TASK START_SECONDS -- <lerobot-eval --env.* flags>
+#   bash examples/evaluate_and_summarize.sh CHECKPOINT OUTPUT_DIR TASK START_EPOCH_SECONDS -- <lerobot-eval --env.* flags>
 #
 # Knobs: EVAL_EPISODES (rollouts, default 50, distinct seeds), EVAL_BATCH (envs stepped together, default 1:
 # LeRobot steps every env of a batch until the slowest one ends, so on a CPU one failed 400-step episode
@@ -27,7 +27,7 @@ echo "== held-out noise-prediction error of the checkpoint (pacdp-metrics, the r
   || { cat "$out/metrics.log"; exit 1; }
 
 "$bin/pacdp-summarize-run" --eval_info="$out/eval/eval_info.json" --checkpoint="$checkpoint" \
-  --metrics="$out/metrics/metrics.json" --task="$task" --wall_time_s="$((SECONDS - start))" --output="$out/summary.json"
+  --metrics="$out/metrics/metrics.json" --task="$task" --wall_time_s="$(( $(date +%s) - start ))" --output="$out/summary.json"
 videos=$(ls "$out"/eval/videos/*/*.mp4 "$out"/eval/videos/*.mp4 2>/dev/null | head -3 || true)
 if [ -n "$videos" ]; then
   echo "rollout videos: $out/eval/videos/ (e.g. $(echo "$videos" | head -1))"

@@ -15,7 +15,7 @@ config="${CONFIG:-configs/robomimic/lift_cpu.json}"
 bin=.venv/bin
 [ -x "$bin/lerobot-train" ] || bin="$(dirname "$(command -v lerobot-train)")"
 export HF_HUB_OFFLINE=1
-start=$SECONDS
+start=$(date +%s)  # epoch seconds: the summary script is another shell, whose $SECONDS starts at 0
 
 echo "== 1/4 recording $demos scripted Lift demonstrations (robosuite 1.5, privileged cube pose, action noise 0.05)"
 mkdir -p "$out"

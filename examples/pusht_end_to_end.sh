@@ -18,7 +18,7 @@ episodes="${EPISODES:-0-39}"
 bin=.venv/bin
 [ -x "$bin/lerobot-train" ] || bin="$(dirname "$(command -v lerobot-train)")"
 
-start=$SECONDS
+start=$(date +%s)  # epoch seconds: the summary script is another shell, whose $SECONDS starts at 0
 if [ -e "$source" ]; then
   export HF_HUB_OFFLINE=1
   echo "== 1/3 converting PushT demos $episodes from $source"

@@ -4,6 +4,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -41,8 +42,9 @@ def test_train_and_evaluate_on_scripted_lift_demos(tmp_path, scripted_lift_datas
     # The main job's last stage: lerobot-eval, pacdp-metrics (held-out NPE), pacdp-summarize-run.
     script = Path(__file__).parents[2] / "examples" / "evaluate_and_summarize.sh"
     env_flags = ["--env.type=robomimic", "--env.task=lift", "--env.episode_length=6", "--policy.device=cpu"]
+    started = int(time.time()) - 100  # the job started 100 s before its evaluation (epoch seconds)
     result = subprocess.run(
-        ["bash", str(script), str(model), str(tmp_path), "lift", "0", "--", *env_flags],
+        ["bash", str(script), str(model), str(tmp_path), "lift", str(started), "--", *env_flags],
         env={**os.environ, "HF_HUB_OFFLINE": "1", "EVAL_EPISODES": "3", "EVAL_BATCH": "3", "PATH": f"{BIN}:{os.environ['PATH']}"},
         capture_output=True, text=True, timeout=900,
     )
@@ -56,4 +58,4 @@ def test_train_and_evaluate_on_scripted_lift_demos(tmp_path, scripted_lift_datas
     low, high = summary["ci95"]
     assert 0.0 <= low <= summary["success_rate"] <= high <= 1.0
     assert summary["policy"].startswith("pacdp PAC-DP (kl_weight=1e-05") and summary["heldout_npe"] > 0
-    assert summary["wall_time_s"] >= 0 and "success rate:" in result.stdout
+    assert 100 <= summary["wall_time_s"] <= 100 + 900 and "success rate:" in result.stdout

@@ -79,19 +79,18 @@ def controller_config(task: RobomimicTask, generation: str = compat.NATIVE) -> d
     return config
 
 
-def make_robosuite_env(
+def robosuite_kwargs(
     task: RobomimicTask | str,
     generation: str = compat.NATIVE,
     *,
     hard_reset: bool = True,
     lite_physics: bool | None = None,
-):
-    """Create the raw robosuite environment of a task with robomimic's settings (20 Hz, sparse reward,
+) -> dict[str, Any]:
+    """`robosuite.make`'s keyword arguments for a task with robomimic's settings (20 Hz, sparse reward,
     no cameras, object observations on). `lite_physics` defaults to False for the legacy generation, as
     robosuite advises for datasets collected with robosuite <= 1.4.1, and to robosuite's default otherwise."""
     task = get_task(task) if isinstance(task, str) else task
     generation = compat.normalize_generation(generation)
-    robosuite = _import_robosuite()
     kwargs: dict[str, Any] = {
         "robots": list(task.robots),
         "controller_configs": controller_config(task, generation),
@@ -110,7 +109,20 @@ def make_robosuite_env(
         lite_physics = False
     if lite_physics is not None:
         kwargs["lite_physics"] = lite_physics
-    return robosuite.make(task.env_name, **kwargs)
+    return kwargs
+
+
+def make_robosuite_env(
+    task: RobomimicTask | str,
+    generation: str = compat.NATIVE,
+    *,
+    hard_reset: bool = True,
+    lite_physics: bool | None = None,
+):
+    """Create the raw robosuite environment of a task (settings: `robosuite_kwargs`)."""
+    task = get_task(task) if isinstance(task, str) else task
+    kwargs = robosuite_kwargs(task, generation, hard_reset=hard_reset, lite_physics=lite_physics)
+    return _import_robosuite().make(task.env_name, **kwargs)
 
 
 @contextlib.contextmanager

@@ -23,7 +23,7 @@ import numpy as np
 
 from lerobot_pacdp.cli_errors import UserInputError, run_draccus_cli
 from lerobot_pacdp.robomimic.hdf5_format import ENV_TYPE_ROBOSUITE, Demo, split_masks, write_robomimic_hdf5
-from lerobot_pacdp.robomimic.tasks import FPS, RobomimicTask, get_task
+from lerobot_pacdp.robomimic.tasks import RobomimicTask, get_task
 
 POS_SCALE = 0.05  # metres per action unit (robomimic's OSC output_max)
 ROT_SCALE = 0.5  # radians per action unit
@@ -402,25 +402,13 @@ def env_args_for(task: RobomimicTask, env) -> dict:
     """robomimic's `env_args` for files recorded by `collect_demos` (robosuite 1.5 composite controller)."""
     import robosuite
 
-    return {
-        "env_name": task.env_name,
-        "env_version": robosuite.__version__,
-        "type": ENV_TYPE_ROBOSUITE,
-        "env_kwargs": {
-            "robots": list(task.robots),
-            **({"env_configuration": task.env_configuration} if task.env_configuration else {}),
-            "controller_configs": env.robosuite_env.robots[0].composite_controller_config,
-            "has_renderer": False,
-            "has_offscreen_renderer": False,
-            "use_camera_obs": False,
-            "use_object_obs": True,
-            "reward_shaping": False,
-            "control_freq": FPS,
-            "ignore_done": True,
-            "hard_reset": True,
-            "lite_physics": bool(getattr(env.robosuite_env, "lite_physics", True)),
-        },
-    }
+    from lerobot_pacdp.robomimic.env import robosuite_kwargs
+
+    env_kwargs = robosuite_kwargs(task, hard_reset=True)
+    env_kwargs["controller_configs"] = env.robosuite_env.robots[0].composite_controller_config  # as recorded
+    env_kwargs["lite_physics"] = bool(getattr(env.robosuite_env, "lite_physics", True))
+    return {"env_name": task.env_name, "env_version": robosuite.__version__, "type": ENV_TYPE_ROBOSUITE,
+            "env_kwargs": env_kwargs}  # fmt: skip
 
 
 def collect_demos(
