@@ -40,6 +40,15 @@ def test_success_rate_counts_episodes_and_refuses_repeated_seeds():
         success_rate_of(_eval_info([True, True], seeds=[7, 7]))
 
 
+def test_runs_split_over_processes_pool_their_episodes_and_must_not_share_seeds():
+    first, second = _eval_info([True, True, False], seeds=[1000, 1001, 1002]), _eval_info([False, True], seeds=[1003, 1004])
+    assert success_rate_of(first, second) == SuccessRate(3, 5)
+    per_task = {"per_task": [{"task_id": 0, "metrics": {"successes": [True]}}]}
+    assert success_rate_of(first, per_task) == SuccessRate(3, 4)
+    with pytest.raises(ValueError, match="5 episodes do not have distinct seeds"):
+        success_rate_of(first, _eval_info([False, True], seeds=[1002, 1003]))
+
+
 def test_the_cli_writes_the_summary_and_names_a_missing_input(tmp_path, capsys):
     checkpoint = tmp_path / "checkpoints" / "000040" / "pretrained_model"
     checkpoint.mkdir(parents=True)
@@ -50,7 +59,7 @@ def test_the_cli_writes_the_summary_and_names_a_missing_input(tmp_path, capsys):
     metrics = {"rows": [{"checkpoint": str(checkpoint), "npe": 0.25, "npe_sem": 0.01}]}
     (tmp_path / "metrics.json").write_text(json.dumps(metrics))
     output = tmp_path / "summary.json"
-    args = [f"--eval_info={tmp_path / 'eval_info.json'}", f"--checkpoint={checkpoint}", "--task=lift",
+    args = [f"--eval_info=[{tmp_path / 'eval_info.json'}]", f"--checkpoint={checkpoint}", "--task=lift",
             f"--metrics={tmp_path / 'metrics.json'}", "--wall_time_s=12.5", f"--output={output}"]
     assert main(args) == 0
     summary = json.loads(output.read_text())
@@ -60,7 +69,7 @@ def test_the_cli_writes_the_summary_and_names_a_missing_input(tmp_path, capsys):
     assert summary["policy"] == "pacdp PAC-DP (kl_weight=1e-05, prior_rho=-4.5)"
     assert "success rate: 90.0% (9/10 episodes" in capsys.readouterr().out
 
-    missing = [a if not a.startswith("--eval_info") else f"--eval_info={tmp_path / 'nope.json'}" for a in args]
+    missing = [a if not a.startswith("--eval_info") else f"--eval_info=[{tmp_path / 'nope.json'}]" for a in args]
     assert main([*missing[:-1], f"--output={tmp_path / 'other.json'}"]) == 2
     assert "nope.json does not exist" in capsys.readouterr().err
     assert not (tmp_path / "other.json").exists()

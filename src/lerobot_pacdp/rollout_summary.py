@@ -1,17 +1,18 @@
 """What a trained policy achieved: its success rate over rollouts with a 95% interval, and one summary file.
 
-`lerobot-eval` writes `eval_info.json` (one row per episode with its seed and success); the interval is
+`lerobot-eval` writes `eval_info.json` (one row per episode with its seed and success; a rollout split over
+several lerobot-eval processes on consecutive seed ranges gives one file each); the interval is
 Wilson's score interval, which stays inside [0, 1] and is sensible at 0 or n successes (the normal
 approximation is not). `pacdp-summarize-run` joins it with the checkpoint (policy, training steps) and the
 held-out NPE from `pacdp-metrics` into the JSON the main job commits:
 
-    pacdp-summarize-run --eval_info=OUT/eval/eval_info.json --checkpoint=OUT/train/checkpoints/last/pretrained_model \
+    pacdp-summarize-run --eval_info=[OUT/eval/part0/eval_info.json,OUT/eval/part1/eval_info.json] --checkpoint=OUT/train/checkpoints/last/pretrained_model \
         --metrics=OUT/metrics/metrics.json --task=lift --wall_time_s=812 --output=OUT/summary.json
 """
 
 import json
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from lerobot_pacdp.atomic_io import write_text_atomic
@@ -51,20 +52,22 @@ class SuccessRate:
                 f"95% interval {100 * low:.1f}-{100 * high:.1f}%)")
 
 
-def success_rate_of(eval_info: dict) -> SuccessRate:
-    """The success rate of a `lerobot-eval` run from its episodes' outcomes.
+def success_rate_of(*eval_infos: dict) -> SuccessRate:
+    """The success rate over the episodes of one or more `lerobot-eval` runs.
 
-    LeRobot 0.6.1 writes them per task (`per_task[i].metrics.successes`; episode k of a run is seeded
-    `--seed + k`, so every episode has its own seed); single-env evaluations write `per_episode` rows with
-    their seeds, which must then be distinct."""
-    if eval_info.get("per_episode"):
-        episodes = eval_info["per_episode"]
-        seeds = [row.get("seed") for row in episodes]
-        if None not in seeds and len(set(seeds)) != len(seeds):
-            raise UserInputError(f"the {len(seeds)} episodes do not have distinct seeds; rerun lerobot-eval.")
-        outcomes = [bool(row["success"]) for row in episodes]
-    else:
-        outcomes = [bool(s) for task in eval_info.get("per_task", []) for s in task.get("metrics", {}).get("successes", [])]
+    LeRobot 0.6.1 writes outcomes per task (`per_task[i].metrics.successes`; episode k of a run is seeded
+    `--seed + k`, so runs started at consecutive seed ranges never share a seed); single-env evaluations
+    write `per_episode` rows with their seeds, which must then be distinct across all the runs."""
+    outcomes, seeds = [], []
+    for eval_info in eval_infos:
+        if eval_info.get("per_episode"):
+            outcomes += [bool(row["success"]) for row in eval_info["per_episode"]]
+            seeds += [row.get("seed") for row in eval_info["per_episode"]]
+        else:
+            tasks = eval_info.get("per_task", [])
+            outcomes += [bool(s) for task in tasks for s in task.get("metrics", {}).get("successes", [])]
+    if seeds and None not in seeds and len(set(seeds)) != len(seeds):
+        raise UserInputError(f"the {len(seeds)} episodes do not have distinct seeds; rerun lerobot-eval.")
     if not outcomes:
         raise UserInputError("the evaluation has no episode outcomes; pass the eval_info.json lerobot-eval wrote.")
     return SuccessRate(sum(outcomes), len(outcomes))
@@ -123,9 +126,9 @@ def _heldout_npe(metrics: Path | None, checkpoint: Path) -> tuple[float | None, 
 
 
 def summarize_run(
-    eval_info: Path, checkpoint: Path, task: str, metrics: Path | None = None, wall_time_s: float | None = None
+    eval_infos: list[Path], checkpoint: Path, task: str, metrics: Path | None = None, wall_time_s: float | None = None
 ) -> RunSummary:
-    success = success_rate_of(_read_json(eval_info, "eval_info.json lerobot-eval wrote"))
+    success = success_rate_of(*(_read_json(path, "eval_info.json lerobot-eval wrote") for path in eval_infos))
     config = _read_json(checkpoint / "config.json", "checkpoint directory (its pretrained_model)")
     npe, npe_sem = _heldout_npe(metrics, checkpoint)
     return RunSummary(
@@ -147,7 +150,7 @@ def summarize_run(
 class SummarizeRunConfig:
     """`pacdp-summarize-run` options."""
 
-    eval_info: Path | None = None  # lerobot-eval's eval_info.json
+    eval_info: list[Path] = field(default_factory=list)  # lerobot-eval's eval_info.json, one per process
     checkpoint: Path | None = None  # the evaluated checkpoint's pretrained_model directory
     task: str = ""
     metrics: Path | None = None  # pacdp-metrics' metrics.json for the checkpoint (held-out NPE)
@@ -156,7 +159,7 @@ class SummarizeRunConfig:
 
 
 def _summarize_main(cfg: SummarizeRunConfig) -> int:
-    if cfg.eval_info is None or cfg.checkpoint is None or not cfg.task or cfg.output is None:
+    if not cfg.eval_info or cfg.checkpoint is None or not cfg.task or cfg.output is None:
         raise UserInputError("pass --eval_info, --checkpoint, --task and --output.")
     summary = summarize_run(cfg.eval_info, cfg.checkpoint, cfg.task, cfg.metrics, cfg.wall_time_s)
     write_text_atomic(cfg.output, json.dumps(asdict(summary), indent=2) + "\n")

@@ -49,10 +49,13 @@ def test_train_and_evaluate_on_scripted_lift_demos(tmp_path, scripted_lift_datas
         capture_output=True, text=True, timeout=900,
     )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    info = json.loads((tmp_path / "eval" / "eval_info.json").read_text())
-    assert info["overall"]["n_episodes"] == 3
+    # Two lerobot-eval processes (EVAL_PROCS default 2) on consecutive seed ranges: 2 episodes, then 1.
+    infos = [json.loads((tmp_path / "eval" / f"part{k}" / "eval_info.json").read_text()) for k in (0, 1)]
+    assert [info["overall"]["n_episodes"] for info in infos] == [2, 1]
+    assert "'seed': 1000," in result.stdout + result.stderr  # lerobot-eval logs its config
+    assert "'seed': 1002," in (tmp_path / "eval" / "part1.log").read_text()
     summary = json.loads((tmp_path / "summary.json").read_text())
-    successes = sum(bool(s) for task in info["per_task"] for s in task["metrics"]["successes"])
+    successes = sum(bool(s) for info in infos for task in info["per_task"] for s in task["metrics"]["successes"])
     assert summary["task"] == "lift" and summary["n_episodes"] == 3 and summary["train_steps"] == 2
     assert summary["success_rate"] == successes / 3 and summary["successes"] == successes
     low, high = summary["ci95"]
