@@ -276,3 +276,23 @@ def test_bayesian_layers_compile_without_graph_breaks_and_keep_their_gradients()
         reference = _gradients(block, block(x).square().sum())
     assert all(torch.allclose(a, b, rtol=1e-5, atol=1e-7) for a, b in zip(sampled, reference, strict=True))
     assert torch.allclose(compiled(x), block(x))  # and outside a block, on mu
+
+
+def test_a_fused_draw_over_layers_with_different_priors_has_their_kl_and_sees_a_changed_prior():
+    torch.manual_seed(11)
+    block = nn.Sequential(nn.Linear(4, 3), nn.Mish(), nn.Linear(3, 2))
+    make_bayesian(block[0], PRIOR_RHO)
+    make_bayesian(block[2], -2.0)
+    for layer in (block[0], block[2]):
+        _perturb(layer)
+    expected = block[0].kl_divergence() + block[2].kl_divergence()
+    with sampled_weights(block):
+        inside = kl_divergence(block)
+    assert inside.item() == pytest.approx(expected.item(), rel=1e-6)
+    with torch.no_grad():
+        block[2].weight_prior_mu.add_(0.5)  # a changed prior (e.g. loaded): the cached flat copy is remade
+        block[2].prior_rho.fill_(PRIOR_RHO)
+    with sampled_weights(block):
+        changed = kl_divergence(block)
+    assert changed.item() == pytest.approx((block[0].kl_divergence() + block[2].kl_divergence()).item(), rel=1e-6)
+    assert changed.item() != pytest.approx(inside.item(), rel=1e-3)

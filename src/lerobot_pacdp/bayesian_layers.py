@@ -152,9 +152,11 @@ def _flat(tensors: tuple[Tensor, ...]) -> Tensor:
 class _FusedSampleWithKL(torch.autograd.Function):
     """One training draw of many tensors at once (Eq. 6) and their posterior's KL, as flat passes over memory.
 
-    Inputs: xi, the prior means and the prior sigmas (flat, one value per element), the number n of tensors, then
-    n posterior means and n rhos. Outputs: the KL (0-d, mu's dtype), the flat sigma (not differentiable; for
-    logging), then the n samples. The flat copies of mu and rho made here are kept for backward.
+    Inputs: xi and the prior means (flat, one value per element), the prior sigma (flat, or 0-d when every
+    tensor has the same), the number n of tensors, then n posterior means and n rhos. Outputs: the KL (0-d,
+    mu's dtype), the flat sigma (not differentiable; for logging), then the n samples. Only xi is kept for
+    backward beside the inputs: the flat mu and rho are rebuilt there (two copies, not two more tensors per
+    weight alive between forward and backward).
     """
 
     @staticmethod
@@ -162,7 +164,8 @@ class _FusedSampleWithKL(torch.autograd.Function):
         mus, rhos = tensors[:n], tensors[n:]
         mu, rho = _flat(mus), _flat(rhos)
         sample, sigma, kl = _run_fused(_fused_sample_and_kl, mu, rho, xi, prior_mu, prior_sigma)
-        ctx.flat_inputs = (mu, rho, xi, prior_mu, prior_sigma)
+        ctx.save_for_backward(*tensors)
+        ctx.flat_inputs = (xi, prior_mu, prior_sigma)
         ctx.sizes, ctx.shapes = [t.numel() for t in mus], [t.shape for t in mus]
         ctx.mark_non_differentiable(sigma)
         ctx.set_materialize_grads(False)
@@ -170,8 +173,9 @@ class _FusedSampleWithKL(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_kl: Tensor | None, _grad_sigma: None, *grad_samples: Tensor | None):
-        mu, rho, xi, prior_mu, prior_sigma = ctx.flat_inputs
-        sizes, shapes = ctx.sizes, ctx.shapes
+        xi, prior_mu, prior_sigma = ctx.flat_inputs
+        tensors, sizes, shapes = ctx.saved_tensors, ctx.sizes, ctx.shapes
+        mu, rho = _flat(tensors[: len(sizes)]), _flat(tensors[len(sizes) :])
         grad_sample = torch.cat(
             [xi.new_zeros(size) if g is None else g.reshape(-1) for g, size in zip(grad_samples, sizes, strict=True)]
         )
@@ -419,8 +423,8 @@ class _FusedDraw:
 
 
 def _flat_prior(members: list[tuple[BayesianLayer, str]]) -> tuple[Tensor, Tensor]:
-    """The prior means and sigmas of `members`' tensors as flat tensors, one value per element. They are
-    constants: the flat copies are kept on the first layer and remade only when a prior tensor changes."""
+    """The prior means of `members`' tensors as one flat tensor, and their prior sigma: 0-d where all layers
+    share it (the usual case), else flat. Constants: kept on the first layer, remade when a prior changes."""
     priors = [(getattr(layer, f"{name}_prior_mu"), layer.prior_rho) for layer, name in members]
     key = tuple((t.data_ptr(), t._version) for pair in priors for t in pair)
     owner = members[0][0]
@@ -429,7 +433,11 @@ def _flat_prior(members: list[tuple[BayesianLayer, str]]) -> tuple[Tensor, Tenso
         return cached[1], cached[2]
     with torch.no_grad():
         prior_mu = _flat(tuple(mu for mu, _ in priors))
-        prior_sigma = torch.cat([F.softplus(rho).reshape(1).expand(mu.numel()) for mu, rho in priors])
+        sigmas = torch.stack([F.softplus(rho) for _, rho in priors])
+        if bool((sigmas == sigmas[0]).all()):  # one host sync per new prior, not per step
+            prior_sigma = sigmas[0].clone()
+        else:
+            prior_sigma = torch.cat([s.reshape(1).expand(mu.numel()) for s, (mu, _) in zip(sigmas, priors, strict=True)])
     owner.__dict__["_flat_prior_cache"] = (key, prior_mu, prior_sigma, priors)  # `priors` keeps the addresses unique
     return prior_mu, prior_sigma
 
