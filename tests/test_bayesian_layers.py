@@ -189,36 +189,18 @@ def test_a_checkpointed_pass_on_mu_after_a_sampled_one_is_recomputed_with_mu():
     assert all(torch.equal(a, b) for a, b in zip(checkpointed, _gradients(block, block(x).square().sum()), strict=True))
 
 
-def test_the_fused_draw_of_several_tensors_passes_gradcheck_and_is_mu_plus_sigma_xi():
-    from lerobot_pacdp.bayesian_layers import _FusedSampleWithKL
+def test_sample_and_kl_share_one_backward_that_passes_gradcheck():
+    from lerobot_pacdp.bayesian_layers import _SampleWithKL
 
     torch.manual_seed(8)
-    shapes = [(5, 3), (4,), (2, 1, 3)]
-    mus = [torch.randn(s, dtype=torch.float64, requires_grad=True) for s in shapes]
-    rhos = [(torch.randn(s, dtype=torch.float64) - 2).requires_grad_() for s in shapes]
-    prior_mus = [torch.randn(s, dtype=torch.float64) for s in shapes]
-    prior_sigmas = [torch.tensor(v, dtype=torch.float64) for v in (0.3, 0.1, 0.7)]
-    xi = torch.randn(sum(m.numel() for m in mus), dtype=torch.float64)
-    flat_prior_mu = torch.cat([m.reshape(-1) for m in prior_mus])
-    flat_prior_sigma = torch.cat([s.expand(m.numel()) for s, m in zip(prior_sigmas, mus, strict=True)])
-
-    def draw(*params):
-        kl, _, *samples = _FusedSampleWithKL.apply(xi, flat_prior_mu, flat_prior_sigma, 3, *params)
-        return kl, *samples
-
-    assert torch.autograd.gradcheck(draw, (*mus, *rhos))
-    kl, *samples = draw(*mus, *rhos)
-    sigma = _FusedSampleWithKL.apply(xi, flat_prior_mu, flat_prior_sigma, 3, *mus, *rhos)[1]
-    flat_sigma = torch.cat([nn.functional.softplus(r).reshape(-1) for r in rhos])
-    assert torch.allclose(sigma, flat_sigma) and not sigma.requires_grad
-    noise = xi.split([m.numel() for m in mus])
-    for mu, rho, s, x in zip(mus, rhos, samples, noise, strict=True):
-        assert s.shape == mu.shape and torch.allclose(s, mu + nn.functional.softplus(rho) * x.view(mu.shape))
-    expected = sum(
-        torch_kl(Normal(m, nn.functional.softplus(r)), Normal(pm, ps)).sum()
-        for m, r, pm, ps in zip(mus, rhos, prior_mus, prior_sigmas, strict=True)
-    )
-    assert kl.item() == pytest.approx(expected.item(), rel=1e-10)
+    mu = torch.randn(5, 3, dtype=torch.float64, requires_grad=True)
+    rho = (torch.randn(5, 3, dtype=torch.float64) - 2).requires_grad_()
+    xi, prior_mu = torch.randn(5, 3, dtype=torch.float64), torch.randn(5, 3, dtype=torch.float64)
+    prior_sigma = torch.tensor(0.3, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda m, r: _SampleWithKL.apply(m, r, xi, prior_mu, prior_sigma)[:2], (mu, rho))
+    sample, kl, sigma = _SampleWithKL.apply(mu, rho, xi, prior_mu, prior_sigma)
+    assert torch.equal(sigma, nn.functional.softplus(rho)) and not sigma.requires_grad
+    assert torch.allclose(sample, mu + sigma * xi)
 
 
 def test_the_kl_drawn_with_a_training_sample_is_the_posteriors_kl_with_the_same_gradients():
@@ -278,7 +260,7 @@ def test_bayesian_layers_compile_without_graph_breaks_and_keep_their_gradients()
     assert torch.allclose(compiled(x), block(x))  # and outside a block, on mu
 
 
-def test_a_fused_draw_over_layers_with_different_priors_has_their_kl_and_sees_a_changed_prior():
+def test_a_draw_over_layers_with_different_priors_has_their_summed_kl_and_sees_a_changed_prior():
     torch.manual_seed(11)
     block = nn.Sequential(nn.Linear(4, 3), nn.Mish(), nn.Linear(3, 2))
     make_bayesian(block[0], PRIOR_RHO)

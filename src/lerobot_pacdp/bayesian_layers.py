@@ -22,28 +22,18 @@ gives one sample per training forward pass and one per generated action chunk, n
 denoising step. A pass that the autograd engine re-runs during backward (gradient checkpointing's
 recomputation, after the block has exited) uses the weights the original pass used: the sample of the
 most recent forward pass run with gradients, or mu if that pass ran on mu.
-
-Cost: a training draw is fused over all layers (`_FusedSampleWithKL`): one Gaussian draw for every weight, one
-pass computing samples, sigma and the KL, one pass for their gradients, each compiled by torch.compile into a
-single loop (~20 separate passes per tensor in eager PyTorch). The draw's sigma and KL are reused by the
-logging and the objective of the same step.
 """
 
 import contextlib
 import copy
-import logging
 import math
-import os
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F  # noqa: N812
 from torch import Tensor, nn
 
 _PARAM_NAMES = ("weight", "bias")
-
-logger = logging.getLogger(__name__)
 
 
 def softplus_inverse(sigma: float) -> float:
@@ -104,90 +94,34 @@ class _GaussianKL(torch.autograd.Function):
         return grad_mu, grad_sigma, None, None
 
 
-def _fused_sample_and_kl(mu: Tensor, rho: Tensor, xi: Tensor, prior_mu: Tensor, prior_sigma: Tensor):
-    """w = mu + softplus(rho) * xi (Eq. 6), sigma, and the KL terms of `_kl_terms_sum` summed, on flat tensors."""
-    sigma = F.softplus(rho)
-    ratio = sigma / prior_sigma
-    gap = (mu - prior_mu) / prior_sigma
-    kl = (0.5 * (ratio * ratio - 1.0) - torch.log(ratio) + 0.5 * (gap * gap)).sum()
-    return torch.addcmul(mu, sigma, xi), sigma, kl
+class _SampleWithKL(torch.autograd.Function):
+    """One training draw of a tensor: w = mu + softplus(rho) * xi (Eq. 6) and the KL of the posterior it came from.
 
-
-def _fused_sample_and_kl_backward(
-    grad_sample: Tensor, grad_kl: Tensor, mu: Tensor, rho: Tensor, xi: Tensor, prior_mu: Tensor, prior_sigma: Tensor
-):
-    """Gradients of `_fused_sample_and_kl` to mu and rho (the KL's as in `_kl_gradients`), sigma recomputed."""
-    sigma = F.softplus(rho)
-    scaled_inv_var = grad_kl / (prior_sigma * prior_sigma)
-    grad_mu = grad_sample + (mu - prior_mu) * scaled_inv_var
-    grad_sigma = grad_sample * xi + sigma * scaled_inv_var - grad_kl / sigma
-    return grad_mu, grad_sigma * torch.sigmoid(rho)
-
-
-_kernels: dict[Callable, Callable] = {}
-
-
-def _run_fused(kernel: Callable, *tensors: Tensor):
-    """`kernel` compiled by torch.compile into one loop over memory (eager, it is ~10 passes); where compiling
-    fails (no C++ compiler for inductor on CPU, no triton on CUDA) the eager kernel, with one warning.
-    PACDP_FUSED_KERNELS=0 skips compiling."""
-    compiled = _kernels.get(kernel)
-    if compiled is None:
-        compiled = kernel if os.environ.get("PACDP_FUSED_KERNELS", "1") == "0" else torch.compile(kernel)
-        _kernels[kernel] = compiled
-    if compiled is kernel:
-        return kernel(*tensors)
-    try:
-        return compiled(*tensors)
-    except Exception as error:  # a compiler failure, whatever its type; a real error recurs in the eager call
-        logger.warning("PAC-DP: torch.compile of the fused sampling kernels failed (%s); running them eagerly.", error)
-        _kernels[kernel] = kernel
-        return kernel(*tensors)
-
-
-def _flat(tensors: tuple[Tensor, ...]) -> Tensor:
-    return torch.cat([t.reshape(-1) for t in tensors])
-
-
-class _FusedSampleWithKL(torch.autograd.Function):
-    """One training draw of many tensors at once (Eq. 6) and their posterior's KL, as flat passes over memory.
-
-    Inputs: xi and the prior means (flat, one value per element), the prior sigma (flat, or 0-d when every
-    tensor has the same), the number n of tensors, then n posterior means and n rhos. Outputs: the KL (0-d,
-    mu's dtype), the flat sigma (not differentiable; for logging), then the n samples. Only xi is kept for
-    backward beside the inputs: the flat mu and rho are rebuilt there (two copies, not two more tensors per
-    weight alive between forward and backward).
+    Sample and KL share one backward, so their gradients reach mu and rho without the separate passes autograd
+    would make (softplus, addcmul, KL, then sums of the two contributions). Only xi is saved: sigma is
+    recomputed in backward, which keeps one tensor per weight less alive between forward and backward.
+    Outputs: w, the KL (a 0-d tensor of mu's dtype) and sigma (not differentiable; for logging and the KL).
     """
 
     @staticmethod
-    def forward(ctx, xi: Tensor, prior_mu: Tensor, prior_sigma: Tensor, n: int, *tensors: Tensor):
-        mus, rhos = tensors[:n], tensors[n:]
-        mu, rho = _flat(mus), _flat(rhos)
-        sample, sigma, kl = _run_fused(_fused_sample_and_kl, mu, rho, xi, prior_mu, prior_sigma)
-        ctx.save_for_backward(*tensors)
-        ctx.flat_inputs = (xi, prior_mu, prior_sigma)
-        ctx.sizes, ctx.shapes = [t.numel() for t in mus], [t.shape for t in mus]
+    def forward(ctx, mu: Tensor, rho: Tensor, xi: Tensor, prior_mu: Tensor, prior_sigma: Tensor):
+        sigma = F.softplus(rho)
+        sample = torch.addcmul(mu, sigma, xi)
+        kl = _kl_terms_sum(mu, sigma, prior_mu, prior_sigma)
+        ctx.save_for_backward(mu, rho, xi, prior_mu, prior_sigma)
         ctx.mark_non_differentiable(sigma)
         ctx.set_materialize_grads(False)
-        return kl, sigma, *_unflatten(sample, ctx.sizes, ctx.shapes)
+        return sample, kl, sigma
 
     @staticmethod
-    def backward(ctx, grad_kl: Tensor | None, _grad_sigma: None, *grad_samples: Tensor | None):
-        xi, prior_mu, prior_sigma = ctx.flat_inputs
-        tensors, sizes, shapes = ctx.saved_tensors, ctx.sizes, ctx.shapes
-        mu, rho = _flat(tensors[: len(sizes)]), _flat(tensors[len(sizes) :])
-        grad_sample = torch.cat(
-            [xi.new_zeros(size) if g is None else g.reshape(-1) for g, size in zip(grad_samples, sizes, strict=True)]
-        )
-        grad_kl = xi.new_zeros(()) if grad_kl is None else grad_kl.to(xi.dtype)
-        grad_mu, grad_rho = _run_fused(
-            _fused_sample_and_kl_backward, grad_sample, grad_kl, mu, rho, xi, prior_mu, prior_sigma
-        )
-        return None, None, None, None, *_unflatten(grad_mu, sizes, shapes), *_unflatten(grad_rho, sizes, shapes)
-
-
-def _unflatten(flat: Tensor, sizes: list[int], shapes: list[torch.Size]) -> list[Tensor]:
-    return [part.view(shape) for part, shape in zip(flat.split(sizes), shapes, strict=True)]
+    def backward(ctx, grad_sample: Tensor | None, grad_kl: Tensor | None, _grad_sigma: None):
+        mu, rho, xi, prior_mu, prior_sigma = ctx.saved_tensors
+        grad_sigma = grad_sample * xi if grad_sample is not None else torch.zeros_like(xi)
+        grad_mu = grad_sample
+        if grad_kl is not None:
+            kl_grad_mu, grad_sigma = _kl_gradients(grad_kl, mu, F.softplus(rho), prior_mu, prior_sigma, grad_sigma)
+            grad_mu = kl_grad_mu if grad_mu is None else kl_grad_mu.add_(grad_mu)
+        return grad_mu, grad_sigma.mul_(torch.sigmoid(rho)), None, None, None
 
 
 class _PendingSample:
@@ -212,7 +146,7 @@ class BayesianLayer(nn.Module):
     prior_rho: Tensor
     _sampled: dict[str, Tensor] | None
     _sampled_sigma: dict[str, Tensor] | None
-    _fused_draw: "_FusedDraw | None"
+    _sampled_kl: Tensor | None
     _graph_sample: _PendingSample
     _sigma_cache: dict[str, tuple[Tensor, int, Tensor]]
 
@@ -254,27 +188,34 @@ class BayesianLayer(nn.Module):
         return sigma
 
     def draw_sample(self, generator: torch.Generator | None = None) -> None:
-        """Draw w = mu + softplus(rho) * xi, xi ~ N(0, I) (Eq. 6), for every Bayesian parameter, without gradients
-        (inference, certificates). A draw with gradients is `sampled_weights`' fused one over all layers."""
-        sample, sigmas = {}, {}
-        for name in self._bayesian_param_names():
-            mu = getattr(self, name)
-            xi = torch.randn(mu.shape, dtype=mu.dtype, device=mu.device, generator=generator)
-            sigmas[name] = self._sigma_without_gradients(name)
-            sample[name] = torch.addcmul(mu.detach(), sigmas[name], xi)
-        self._set_sample(sample, sigmas, None)
+        """Draw w = mu + softplus(rho) * xi, xi ~ N(0, I) (Eq. 6), for every Bayesian parameter.
 
-    def _set_sample(self, sample: dict[str, Tensor], sigmas: dict[str, Tensor], draw: "_FusedDraw | None") -> None:
-        """Enter a sampling block: sigma is kept until `clear_sample` so the KL and the logging reuse it."""
-        if torch.is_grad_enabled():
+        sigma is kept until `clear_sample` so the KL and the logging of the same step reuse it; with gradients
+        the KL is computed with the sample (`_SampleWithKL`) and `kl_divergence` returns it.
+        """
+        grad = torch.is_grad_enabled()
+        if grad:
             self._graph_sample.sample = None  # the previous graph's sample is not kept alive beside the new one
-        self._sampled, self._sampled_sigma, self._fused_draw = sample, sigmas, draw
+        prior_sigma = F.softplus(self.prior_rho)
+        sample, sigmas, kls = {}, {}, []
+        for name in self._bayesian_param_names():
+            mu, rho = getattr(self, name), getattr(self, f"{name}_rho")
+            xi = torch.randn(mu.shape, dtype=mu.dtype, device=mu.device, generator=generator)
+            if grad and (mu.requires_grad or rho.requires_grad):
+                prior_mu = getattr(self, f"{name}_prior_mu")
+                sample[name], kl, sigmas[name] = _SampleWithKL.apply(mu, rho, xi, prior_mu, prior_sigma)
+                kls.append(kl.double())
+            else:
+                sigmas[name] = self._sigma_without_gradients(name)
+                sample[name] = torch.addcmul(mu, sigmas[name], xi)
+        self._sampled, self._sampled_sigma = sample, sigmas
+        self._sampled_kl = torch.stack(kls).sum() if len(kls) == len(sample) else None
 
     def clear_sample(self) -> None:
         """End the sampling block: new passes use mu (a backward recomputation still sees its own weights)."""
         self._sampled = None
         self._sampled_sigma = None
-        self._fused_draw = None
+        self._sampled_kl = None
 
     def current(self, name: str) -> Tensor | None:
         """The tensor this forward pass uses: the drawn sample if any, else the posterior mean.
@@ -298,8 +239,11 @@ class BayesianLayer(nn.Module):
         """Closed-form KL(Q||P) between factorized Gaussians, summed over all elements (Eq. 12 terms).
 
         KL = sum 0.5 * (log(sp^2/sq^2) + (sq^2 + (mq - mp)^2) / sp^2 - 1): each tensor's nonnegative
-        terms summed in its dtype, the tensors' sums added in float64 (see `_kl_terms_sum`).
+        terms summed in its dtype, the tensors' sums added in float64 (see `_kl_terms_sum`). Inside a
+        sampling block drawn with gradients, the KL computed with the sample (the same value).
         """
+        if self._sampled_kl is not None:
+            return self._sampled_kl if torch.is_grad_enabled() else self._sampled_kl.detach()
         prior_sigma = F.softplus(self.prior_rho)
         total = torch.zeros((), dtype=torch.float64, device=self.prior_rho.device)
         for name in self._bayesian_param_names():
@@ -382,15 +326,11 @@ def bayesian_layers(network: nn.Module) -> Iterator[BayesianLayer]:
 
 
 def kl_divergence(network: nn.Module) -> Tensor:
-    """KL(Q||P) of the whole network: the sum of its layers' KLs (paper Eq. 12), float64. Inside a sampling
-    block drawn with gradients over exactly these layers, the KL computed with the sample (the same value)."""
-    layers = list(bayesian_layers(network))
-    if not layers:
+    """KL(Q||P) of the whole network: the sum of its layers' KLs (paper Eq. 12), float64."""
+    terms = [layer.kl_divergence() for layer in bayesian_layers(network)]
+    if not terms:
         raise ValueError("The network has no Bayesian layers, so KL(Q||P) is undefined.")
-    draw = layers[0]._fused_draw
-    if draw is not None and draw.num_layers == len(layers) and all(layer._fused_draw is draw for layer in layers):
-        return draw.kl if torch.is_grad_enabled() else draw.kl.detach()
-    return torch.stack([layer.kl_divergence() for layer in layers]).sum()
+    return torch.stack(terms).sum()
 
 
 def exact_kl(network: nn.Module) -> float:
@@ -414,68 +354,12 @@ def mean_posterior_sigma(network: nn.Module) -> float:
     return total.item() / sum(s.numel() for s in sigmas)
 
 
-@dataclass(frozen=True)
-class _FusedDraw:
-    """A training draw over `num_layers` layers at once, and the KL(Q||P) computed with it (float64)."""
-
-    num_layers: int
-    kl: Tensor
-
-
-def _flat_prior(members: list[tuple[BayesianLayer, str]]) -> tuple[Tensor, Tensor]:
-    """The prior means of `members`' tensors as one flat tensor, and their prior sigma: 0-d where all layers
-    share it (the usual case), else flat. Constants: kept on the first layer, remade when a prior changes."""
-    priors = [(getattr(layer, f"{name}_prior_mu"), layer.prior_rho) for layer, name in members]
-    key = tuple((t.data_ptr(), t._version) for pair in priors for t in pair)
-    owner = members[0][0]
-    cached = owner.__dict__.get("_flat_prior_cache")
-    if cached is not None and cached[0] == key:
-        return cached[1], cached[2]
-    with torch.no_grad():
-        prior_mu = _flat(tuple(mu for mu, _ in priors))
-        sigmas = torch.stack([F.softplus(rho) for _, rho in priors])
-        if bool((sigmas == sigmas[0]).all()):  # one host sync per new prior, not per step
-            prior_sigma = sigmas[0].clone()
-        else:
-            prior_sigma = torch.cat([s.reshape(1).expand(mu.numel()) for s, (mu, _) in zip(sigmas, priors, strict=True)])
-    owner.__dict__["_flat_prior_cache"] = (key, prior_mu, prior_sigma, priors)  # `priors` keeps the addresses unique
-    return prior_mu, prior_sigma
-
-
-def _draw_with_gradients(layers: list[BayesianLayer], generator: torch.Generator | None) -> None:
-    """One fused draw (`_FusedSampleWithKL`) per device and dtype over every Bayesian tensor of `layers`."""
-    groups: dict[tuple, list[tuple[BayesianLayer, str]]] = {}
-    for layer in layers:
-        for name in layer._bayesian_param_names():
-            mu = getattr(layer, name)
-            groups.setdefault((mu.device, mu.dtype), []).append((layer, name))
-    samples: dict[BayesianLayer, dict[str, Tensor]] = {layer: {} for layer in layers}
-    sigmas: dict[BayesianLayer, dict[str, Tensor]] = {layer: {} for layer in layers}
-    kls = []
-    for members in groups.values():
-        mus = [getattr(layer, name) for layer, name in members]
-        rhos = [getattr(layer, f"{name}_rho") for layer, name in members]
-        prior_mu, prior_sigma = _flat_prior(members)
-        xi = torch.randn(prior_mu.shape, dtype=prior_mu.dtype, device=prior_mu.device, generator=generator)
-        kl, sigma, *drawn = _FusedSampleWithKL.apply(xi, prior_mu, prior_sigma, len(mus), *mus, *rhos)
-        kls.append(kl.double())
-        for (layer, name), w, s in zip(members, drawn, sigma.split([w.numel() for w in drawn]), strict=True):
-            samples[layer][name], sigmas[layer][name] = w, s.view(w.shape)
-    draw = _FusedDraw(num_layers=len(layers), kl=torch.stack(kls).sum())
-    for layer in layers:
-        layer._set_sample(samples[layer], sigmas[layer], draw)
-
-
 @contextlib.contextmanager
 def sampled_weights(network: nn.Module, generator: torch.Generator | None = None) -> Iterator[None]:
-    """Within the block, every Bayesian layer uses one weight sample drawn on entry (Eq. 6). With gradients the
-    draw and its KL are fused over all layers (a few passes over memory, not ~20 per tensor)."""
+    """Within the block, every Bayesian layer uses one weight sample drawn on entry (Eq. 6)."""
     layers = list(bayesian_layers(network))
-    if torch.is_grad_enabled() and any(p.requires_grad for layer in layers for p in layer.parameters(recurse=False)):
-        _draw_with_gradients(layers, generator)
-    else:
-        for layer in layers:
-            layer.draw_sample(generator)
+    for layer in layers:
+        layer.draw_sample(generator)
     try:
         yield
     finally:
