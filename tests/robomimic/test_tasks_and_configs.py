@@ -224,8 +224,8 @@ def test_paper_config_parses_with_the_paper_settings(name):
 def test_cpu_preset_parses_as_a_small_model_with_the_cpu_recipe(name):
     config = draccus.parse(config_class=TrainPipelineConfig, config_path=CONFIG_DIR / f"{name}_cpu.json", args=[])
     assert config.policy.down_dims == (32, 64, 128) and config.batch_size == 64 and config.steps == 3000
-    # The recipe reaches lerobot-train's optimizer and scheduler presets (lr 1e-3, 100 warm-up steps).
-    assert config.policy.get_optimizer_preset().lr == 1e-3
+    # The recipe reaches lerobot-train's optimizer and scheduler presets (lr 6e-3, 100 warm-up steps).
+    assert config.policy.get_optimizer_preset().lr == 6e-3
     assert config.policy.get_scheduler_preset().num_warmup_steps == 100
     assert config.policy.device == "cpu" and config.env.robosuite_compat == "1.5"
     assert config.policy.kl_weight == TASKS[name].kl_weight
