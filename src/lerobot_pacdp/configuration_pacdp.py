@@ -42,6 +42,9 @@ class PacdpConfig(DiffusionConfig):
         freeze_deterministic: keep every non-Bayesian tensor (FiLM projections, GroupNorm, observation
             encoders) at a value fixed before training (`lerobot_pacdp.certification`), so that only the
             posterior depends on the demonstrations, as `pacdp-certify` requires.
+        uncertainty_samples: K > 0 records, for every generated chunk, how much K posterior weight samples
+            (and K initial noises) disagree on it (`lerobot_pacdp.uncertainty`); the actions are unchanged.
+            Under lerobot-eval each episode's values are written beside eval_info.json. 0: off.
     """
 
     # PAC-Bayes objective and posterior.
@@ -56,6 +59,7 @@ class PacdpConfig(DiffusionConfig):
     ema_power: float = 0.75
     ema_max_decay: float = 0.9999
     freeze_deterministic: bool = False
+    uncertainty_samples: int = 0
 
     # Diffusion Policy's state-based setup (Chi et al.), not LeRobot's image-based defaults.
     horizon: int = 16
@@ -122,6 +126,11 @@ class PacdpConfig(DiffusionConfig):
             raise ValueError(
                 f"`ema_max_decay` must lie in [0, 1), got {self.ema_max_decay} (Chi et al.: 0.9999). "
                 "Use `use_ema=false` to act with the trained weights themselves."
+            )
+        if self.uncertainty_samples < 0 or self.uncertainty_samples == 1:
+            raise ValueError(
+                f"`uncertainty_samples` must be 0 (off) or at least 2 (a spread needs two samples), got "
+                f"{self.uncertainty_samples}. The measured setting is 8."
             )
         if self.compile_model:
             raise ValueError(

@@ -12,6 +12,7 @@ policy loading a pacdp `model.safetensors` all get the EMA weights). `raw_diffus
 
 import contextlib
 import copy
+import functools
 import logging
 import math
 from pathlib import Path
@@ -35,6 +36,12 @@ from lerobot_pacdp.configuration_pacdp import PacdpConfig
 from lerobot_pacdp.ema import ema_decay, update_ema
 from lerobot_pacdp.objective import pac_bayes_objective
 from lerobot_pacdp.training_set import training_set_size
+from lerobot_pacdp.uncertainty import (
+    DEFAULT_SAMPLES,
+    ChunkUncertainty,
+    chunk_with_uncertainty,
+    uncertainty_generator,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -76,6 +83,7 @@ class PacdpPolicy(DiffusionPolicy):
             self.raw_diffusion = copy.deepcopy(self.diffusion)
             self.diffusion.requires_grad_(False)
         self.register_buffer(_UPDATES_KEY, torch.zeros((), dtype=torch.long))
+        self._uncertainty_generator: torch.Generator | None = None
         if config.bayesian and config.num_train_samples is None and dataset_meta is not None:
             config.num_train_samples = training_set_size(dataset_meta, config.drop_n_last_frames).num_windows
 
@@ -189,10 +197,37 @@ class PacdpPolicy(DiffusionPolicy):
             return sampled_weights(self.unet, generator)
         return contextlib.nullcontext()
 
+    def reset(self) -> None:
+        super().reset()
+        self.uncertainty_trace: list[ChunkUncertainty] = []  # one per chunk while `uncertainty_samples` > 0
+
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:
+        if self.config.uncertainty_samples:  # same actions; their uncertainty is recorded beside them
+            chunk = self.predict_with_uncertainty(batch, noise)
+            self.uncertainty_trace.append(chunk)
+            return chunk.actions
+        return self._acting_chunk(batch, noise)
+
+    def _acting_chunk(self, batch: dict[str, Tensor], noise: Tensor | None) -> Tensor:
         with self.inference_weights():
             return super().predict_action_chunk(batch, noise=noise)
+
+    @torch.no_grad()
+    def predict_with_uncertainty(
+        self, batch: dict[str, Tensor], noise: Tensor | None = None, num_samples: int | None = None,
+        generator: torch.Generator | None = None,
+    ) -> ChunkUncertainty:
+        """The chunk `predict_action_chunk` returns and how much K posterior weight samples (and K initial
+        noises) disagree on it (`lerobot_pacdp.uncertainty`); K = `num_samples`, else `uncertainty_samples`,
+        else 8. The draws come from `generator` (default: the policy's own), never the global RNG."""
+        if generator is None:
+            if self._uncertainty_generator is None:
+                self._uncertainty_generator = uncertainty_generator(self.num_updates.device)
+            generator = self._uncertainty_generator
+        num_samples = num_samples or self.config.uncertainty_samples or DEFAULT_SAMPLES
+        act = functools.partial(self._acting_chunk, batch, noise)
+        return chunk_with_uncertainty(self.diffusion, act, num_samples, generator)
 
     @classmethod
     def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):
