@@ -17,13 +17,13 @@ import contextlib
 import functools
 import inspect
 import logging
-import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from lerobot_pacdp.module_swaps import running_modules
 from lerobot_pacdp.rollout_summary import describe_policy
 from lerobot_pacdp.uncertainty_episodes import (
     UNCERTAINTY_FILE,
@@ -166,9 +166,5 @@ def install(module: ModuleType) -> None:
 
 def install_into_running_lerobot_eval() -> None:
     """Install into lerobot-eval when it is the running program, or wherever its module is loaded."""
-    module = sys.modules.get(LEROBOT_EVAL_MODULE)
-    if module is not None:
+    for module in running_modules(LEROBOT_EVAL_MODULE):
         install(module)
-    main = sys.modules.get("__main__")
-    if getattr(getattr(main, "__spec__", None), "name", None) == LEROBOT_EVAL_MODULE:
-        install(main)

@@ -34,6 +34,7 @@ from lerobot_pacdp.bayesian_layers import (
 from lerobot_pacdp.certification import data_free_reference, freeze_deterministic
 from lerobot_pacdp.configuration_pacdp import PacdpConfig
 from lerobot_pacdp.ema import ema_decay, update_ema
+from lerobot_pacdp.module_swaps import child_replaced
 from lerobot_pacdp.objective import pac_bayes_objective
 from lerobot_pacdp.training_set import training_set_size
 from lerobot_pacdp.uncertainty import (
@@ -97,15 +98,9 @@ class PacdpPolicy(DiffusionPolicy):
         """The U-Net that acts (the EMA one when `use_ema`): what inference, metrics and certificates use."""
         return self.diffusion.unet
 
-    @contextlib.contextmanager
-    def _acting(self, network: DiffusionModel):
+    def _acting(self, network: DiffusionModel) -> contextlib.AbstractContextManager:
         """Run LeRobot's DiffusionPolicy code with `network` in the place of `self.diffusion`."""
-        acting = self._modules["diffusion"]
-        self._modules["diffusion"] = network
-        try:
-            yield
-        finally:
-            self._modules["diffusion"] = acting
+        return child_replaced(self, "diffusion", network)
 
     def get_optim_params(self) -> list[dict]:
         """The trained network's parameters; rho in its own group without weight decay (decay would pull

@@ -25,6 +25,7 @@ import torch
 from lerobot.datasets import EpisodeAwareSampler
 
 from lerobot_pacdp.configuration_pacdp import PacdpConfig
+from lerobot_pacdp.module_swaps import running_modules
 
 logger = logging.getLogger(__name__)
 
@@ -171,9 +172,5 @@ def install(module: ModuleType) -> None:
 
 def install_into_running_lerobot_train() -> None:
     """Install into lerobot-train when it is the running program (`lerobot-train`, `python -m`, torchrun)."""
-    module = sys.modules.get(LEROBOT_TRAIN_MODULE)
-    if module is not None:
+    for module in running_modules(LEROBOT_TRAIN_MODULE):
         install(module)
-    main = sys.modules.get("__main__")
-    if getattr(getattr(main, "__spec__", None), "name", None) == LEROBOT_TRAIN_MODULE:
-        install(main)

@@ -30,6 +30,7 @@ from lerobot.utils.constants import OBS_STATE
 from torch import Tensor, nn
 
 from lerobot_pacdp.bayesian_layers import BayesianLayer
+from lerobot_pacdp.module_swaps import child_replaced
 
 DEFAULT_SAMPLES = 8
 _SEED_OFFSET = 0x5EED  # the policy's uncertainty generator starts at torch's initial seed plus this
@@ -99,16 +100,6 @@ class _UnetPerWeightSet(nn.Module):
 
 
 @contextlib.contextmanager
-def _unet_replaced(model: DiffusionModel, unet: nn.Module) -> Iterator[None]:
-    original = model._modules["unet"]
-    model._modules["unet"] = unet
-    try:
-        yield
-    finally:
-        model._modules["unet"] = original
-
-
-@contextlib.contextmanager
 def _recorded_generation(model: DiffusionModel) -> Iterator[dict[str, object]]:
     """Record the observation window and initial noise LeRobot's `generate_actions` is called with. Where
     LeRobot would draw the noise itself, it is drawn here with `conditional_sample`'s own call, so the RNG
@@ -145,7 +136,7 @@ def posterior_chunks(
     if not weight_sets:
         return None
     rows = num_samples * noise.shape[0]
-    with _unet_replaced(model, _UnetPerWeightSet(model.unet, weight_sets)):
+    with child_replaced(model, "unet", _UnetPerWeightSet(model.unet, weight_sets)):
         chunks = model.conditional_sample(rows, global_cond.repeat(num_samples, 1), generator, noise.repeat(num_samples, 1, 1))
     return _executed(model, chunks, num_samples)
 
