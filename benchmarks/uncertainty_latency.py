@@ -2,9 +2,9 @@
 
     OMP_NUM_THREADS=1 python benchmarks/uncertainty_latency.py --threads 1 --batch-sizes 1 5 --rounds 7
 
-Times, per round and interleaved so load changes hit every variant alike, on the PushT CPU preset's U-Net
-(configs/pusht/pacdp_cpu.json, PushT's state and keypoint sizes, DDIM 10 steps; the weights' values do not
-matter; the policy of results/uncertainty):
+Times, per round and interleaved so load changes hit every variant alike, on the Lift CPU preset's U-Net
+(configs/robomimic/lift_cpu.json, Lift's state, object and action sizes, DDIM 10 steps; the weights' values
+do not matter; the policy of results/uncertainty):
 one chunk (`predict_action_chunk`, mean mode); the K posterior chunks as one vmapped pass over K stacked
 weight sets (weight draw included) and as K sequential passes (`sampled_weights`, one per pass); the K noise
 chunks (K x B rows of one sampler call); and all of `predict_with_uncertainty`. Medians of wall and CPU
@@ -23,15 +23,16 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot_pacdp.atomic_io import write_text_atomic
 from lerobot_pacdp.bayesian_layers import sampled_weights
 from lerobot_pacdp.configuration_pacdp import PacdpConfig
-from lerobot_pacdp.datasets.pusht_zarr import FEATURES
+from lerobot_pacdp.robomimic.tasks import get_task
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
 from lerobot_pacdp.uncertainty import noise_chunks, posterior_chunks
 
-PRESET = Path(__file__).resolve().parents[1] / "configs" / "pusht" / "pacdp_cpu.json"
-STATE, ENV, ACTION = (FEATURES[k]["shape"][0] for k in ("observation.state", "observation.environment_state", "action"))
+PRESET = Path(__file__).resolve().parents[1] / "configs" / "robomimic" / "lift_cpu.json"
+LIFT = get_task("lift")
+STATE, ENV, ACTION = LIFT.state_dim, LIFT.object_dim, LIFT.action_dim
 
 
-def pusht_cpu_policy() -> PacdpPolicy:
+def lift_cpu_policy() -> PacdpPolicy:
     preset = json.loads(PRESET.read_text())["policy"]
     config = PacdpConfig(down_dims=tuple(preset["down_dims"]), diffusion_step_embed_dim=preset["diffusion_step_embed_dim"],
                          num_train_samples=1000, device="cpu")  # fmt: skip
@@ -71,7 +72,7 @@ def variants(policy: PacdpPolicy, batch_size: int, k: int) -> dict:
 
 
 def measure(batch_sizes: list[int], k: int, rounds: int) -> dict:
-    policy = pusht_cpu_policy()
+    policy = lift_cpu_policy()
     results = {}
     with torch.no_grad():
         for batch_size in batch_sizes:
