@@ -23,8 +23,8 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot_pacdp.atomic_io import write_text_atomic
 from lerobot_pacdp.bayesian_layers import sampled_weights
 from lerobot_pacdp.configuration_pacdp import PacdpConfig
-from lerobot_pacdp.robomimic.tasks import get_task
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
+from lerobot_pacdp.robomimic.tasks import get_task
 from lerobot_pacdp.uncertainty import noise_chunks, posterior_chunks
 
 PRESET = Path(__file__).resolve().parents[1] / "configs" / "robomimic" / "lift_cpu.json"
