@@ -496,7 +496,8 @@ class ScriptedDemosConfig:
     overwrite: bool = False  # replace an existing output file
 
 
-def _record_and_report(cfg: ScriptedDemosConfig) -> int:
+def record_scripted_demos(cfg: ScriptedDemosConfig) -> int:
+    """Record `cfg.num_demos` successful expert episodes into `cfg.output` and print what was recorded."""
     if cfg.task is None or cfg.num_demos is None or cfg.output is None:
         raise UserInputError(f"pass --task=<{'|'.join(EXPERTS)}> --num_demos=N --output=FILE.hdf5.")
     task = get_task(cfg.task)
@@ -531,7 +532,7 @@ def _record_and_report(cfg: ScriptedDemosConfig) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """`pacdp-scripted-demos`: exits 2 with a one-line message on bad input."""
-    return run_draccus_cli("pacdp-scripted-demos", ScriptedDemosConfig, _record_and_report, argv)
+    return run_draccus_cli("pacdp-scripted-demos", ScriptedDemosConfig, record_scripted_demos, argv)
 
 
 if __name__ == "__main__":

@@ -43,15 +43,21 @@ def count_episodes(task: TaskPreset, output_dir: Path, pusht_zarr: Path | None) 
         from lerobot_pacdp.datasets.pusht_zarr import load_replay_buffer
 
         return load_replay_buffer(pusht_zarr).num_episodes
+    if task.scripted is not None:
+        return task.scripted.num_demos
     if task.num_episodes is not None:
         return task.num_episodes
     raise StudyError(f"{task.name}: no dataset at {root}; convert its demos there first.")
 
 
 def prepare_dataset(task: TaskPreset, output_dir: Path, pusht_zarr: Path | None) -> None:
-    """Convert the PushT demos into the study's output dir once (all of them: indices stay the zarr's)."""
+    """Record a scripted task's demos, or convert the PushT demos, into the study's output dir once (all of
+    them: indices stay the source's)."""
     root = _dataset_location(task, output_dir)
     if (root / "meta" / "info.json").is_file():
+        return
+    if task.scripted is not None:
+        _record_scripted(task, root)
         return
     if not task.from_pusht_zarr:
         raise StudyError(
@@ -66,3 +72,23 @@ def prepare_dataset(task: TaskPreset, output_dir: Path, pusht_zarr: Path | None)
     start = time.monotonic()
     convert_pusht_zarr(pusht_zarr, root, task.repo_id)
     logger.info("converted in %.0f s", time.monotonic() - start)
+
+
+def _record_scripted(task: TaskPreset, root: Path) -> None:
+    from lerobot_pacdp.robomimic.hdf5_adapter import convert_robomimic_hdf5, inspect_hdf5
+    from lerobot_pacdp.robomimic.scripted_experts import ScriptedDemosConfig, record_scripted_demos
+
+    scripted = task.scripted
+    hdf5 = root.with_suffix(".hdf5")
+    logger.info("recording %d scripted %s demos into %s ...", scripted.num_demos, task.name, hdf5)
+    start = time.monotonic()
+    record_scripted_demos(ScriptedDemosConfig(
+        task=task.name, num_demos=scripted.num_demos, output=hdf5, seed=scripted.seed,
+        action_noise=scripted.action_noise, overwrite=True,
+    ))  # fmt: skip
+    recorded = len(inspect_hdf5(hdf5, task.name).demos)
+    if recorded != scripted.num_demos:
+        raise StudyError(f"{task.name}: the scripted expert recorded {recorded} of {scripted.num_demos} demos; "
+                         "lower the preset's action noise or record fewer.")  # fmt: skip
+    convert_robomimic_hdf5(hdf5, root, task.repo_id, task.name)
+    logger.info("recorded and converted in %.0f s", time.monotonic() - start)

@@ -35,6 +35,15 @@ class StudyError(UserInputError):
 
 
 @dataclass(frozen=True)
+class ScriptedDemos:
+    """Demos a study records itself with `pacdp-scripted-demos` (the same file for every method and seed)."""
+
+    num_demos: int
+    seed: int = 0
+    action_noise: float = 0.05  # the main job's
+
+
+@dataclass(frozen=True)
 class TaskPreset:
     """One benchmark task of a study.
 
@@ -42,7 +51,8 @@ class TaskPreset:
     plan replaces the episodes, seed, steps, method and output dir per run. The dataset lives at
     `dataset_root` (relative paths are under the study's output dir; `None`: LeRobot's default location
     for the repo id). With `from_pusht_zarr` a missing dataset is converted from the PushT replay buffer
-    the study is given (`--pusht_zarr`); otherwise it must exist.
+    the study is given (`--pusht_zarr`); with `scripted` it is recorded by the task's scripted expert and
+    converted; otherwise it must exist.
     """
 
     name: str
@@ -55,6 +65,7 @@ class TaskPreset:
     dataset_root: str | None = None
     from_pusht_zarr: bool = False
     num_episodes: int | None = None  # expected demos in the dataset (planning before it is converted)
+    scripted: ScriptedDemos | None = None
 
     @property
     def repo_id(self) -> str:
@@ -146,6 +157,54 @@ def _cpu_preset() -> Preset:
     )
 
 
+def _cpu_v2_task(name: str, config_file: str, demos: tuple[int, ...], scripted: ScriptedDemos | None) -> TaskPreset:
+    """A task of the CPU evidence study at its CPU recipe (the config file's lr, warm-up, steps, save_freq)."""
+    config = load_config_file(config_file)
+    config.update(batch_size=64, num_workers=0, log_freq=100)
+    steps, save_freq = config.pop("steps"), config.pop("save_freq")
+    return TaskPreset(
+        name=name,
+        train_config=config,
+        demos=demos,
+        heldout=20,
+        steps=steps,
+        save_freq=save_freq,
+        reference_kl_weight=config["policy"]["kl_weight"],
+        dataset_root=f"data/{name}",
+        from_pusht_zarr=scripted is None,
+        scripted=scripted,
+    )
+
+
+def _cpu_v2_preset() -> Preset:
+    """Issue 14's evidence study: DP twin / BDP / PAC-DP at each task's CPU recipe, 3 seeds, 50 rollouts."""
+    scripted = ScriptedDemos(num_demos=60)  # 20 held out per seed + at most 40 for training
+    tasks = (
+        _cpu_v2_task("lift", "robomimic/lift_cpu.json", (20, 40), scripted),
+        _cpu_v2_task("can", "robomimic/can_cpu.json", (20, 40), scripted),
+        _cpu_v2_task("pusht", "pusht/pacdp_cpu.json", (20,), None),
+    )
+    rho = tasks[0].train_config["policy"]["prior_rho"]
+    return Preset(
+        name="cpu_v2",
+        tasks=tasks,
+        seeds=PAPER_SEEDS,
+        kl_weights=(),
+        prior_rhos=(rho,),
+        reference_rho=rho,
+        seed_offset=tasks[0].train_config["seed"],
+        jobs=2,
+        last_k=1,  # the final checkpoint
+        nll_steps=25,
+        frame_stride=2,
+        metrics_batch_size=256,
+        success_episodes=50,
+        success_last_k=1,
+        device="cpu",
+        perf_rows=(PerfRow("cpu", 64),),
+    )
+
+
 def _paper_task(
     name: str, config: dict, kl: float, demos: tuple[int, ...], root: str | None, from_pusht_zarr: bool = False,
     num_episodes: int | None = None,
@@ -191,7 +250,7 @@ def _paper_preset() -> Preset:
     )
 
 
-PRESETS = {"cpu": _cpu_preset, "paper": _paper_preset}
+PRESETS = {"cpu": _cpu_preset, "cpu_v2": _cpu_v2_preset, "paper": _paper_preset}
 
 
 def get_preset(name: str) -> Preset:
