@@ -275,6 +275,9 @@ def test_tiny_study_end_to_end_through_lerobot_train(tmp_path, monkeypatch):
     markdown = (tmp_path / "results" / "tables.md").read_text()
     assert "Table I" in markdown and "Performance" in markdown
     assert (tmp_path / "results" / "figures" / "main_pusht_d003" / "npe.png").is_file()
+    summary = json.loads((tmp_path / "results" / "summary.json").read_text())
+    assert [(r["method"], r["step"], r["n_episodes"]) for r in summary] == [("DP", 4, 0), ("PAC-DP", 4, 0)]
+    assert all(r["heldout_npe"] > 0 and r["success_rate"] is None for r in summary)
 
 
 def test_performance_table_runs_each_rows_benchmark_and_reads_its_ratios(tmp_path, monkeypatch):

@@ -9,6 +9,8 @@ a cell is mean +- std (ddof=1) over seeds.
 - Table III: per task x demos: BDP average over rho, PAC-DP average over the grid (+- std over grid
   points of the seed means), PAC-DP best (+- std over seeds).
 Tables II and III are written for each metric (the paper shows the success rate).
+- Evidence (`study.evidence`): `summary.json`, one row per run's final checkpoint at the reference point,
+  `paired.json` (PAC-DP vs DP per task, paired by demos and seed) and `evidence.md`.
 """
 
 import csv
@@ -18,11 +20,13 @@ import logging
 import math
 import statistics
 from collections import defaultdict
+from dataclasses import asdict
 from pathlib import Path
 
 from lerobot_pacdp.atomic_io import write_text_atomic
 from lerobot_pacdp.metrics.sweep import plot_metrics, summarize
 from lerobot_pacdp.study.evaluation import SPEC_FIELDS
+from lerobot_pacdp.study.evidence import final_rows, paired_comparisons, render_evidence
 from lerobot_pacdp.study.plan import RunSpec
 from lerobot_pacdp.study.presets import Preset
 from lerobot_pacdp.study.state import run_state
@@ -285,5 +289,11 @@ def report(
     write_text_atomic(results / "dynamics.csv", _csv(dynamics))
     write_text_atomic(results / "tables.csv", _csv(cells))
     write_text_atomic(results / "tables.md", markdown)
+    summary = final_rows(rows, preset.success_episodes, references)
+    comparisons = paired_comparisons(summary)
+    write_text_atomic(results / "summary.json", json.dumps(summary, indent=1) + "\n")
+    write_text_atomic(results / "paired.json", json.dumps([asdict(c) for c in comparisons], indent=1) + "\n")
+    write_text_atomic(results / "evidence.md", render_evidence(summary, comparisons))
     plot_reference_curves(rows, references, results / "figures")
-    logger.info("wrote %s (tables.md, tables.csv, runs.csv, dynamics.csv, figures/)\n%s", results, markdown)
+    logger.info("wrote %s (tables.md, evidence.md, summary.json, paired.json, tables.csv, runs.csv, dynamics.csv, "
+                "figures/)\n%s", results, markdown + render_evidence(summary, comparisons))

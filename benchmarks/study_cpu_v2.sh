@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# Issue 14's evidence study in pieces: `pacdp-study --preset=cpu_v2` for one task and one seed per call (6 runs
+# of Lift or Can, DP twin / BDP / PAC-DP x 20 and 40 demos; 3 runs of PushT), each piece resumable, then the
+# tables of everything finished so far, copied into results/study_cpu_v2 (commit them as each piece lands).
+#
+#   bash benchmarks/study_cpu_v2.sh lift 0        # train and evaluate Lift seed 0 (~1 h on 2 cores)
+#   bash benchmarks/study_cpu_v2.sh lift 1 2      # seeds 1 and 2, one after the other
+#   bash benchmarks/study_cpu_v2.sh publish       # only (re)write the tables of every finished piece
+#
+# The study records its 60 scripted Lift / Can demos itself (seed 0); PushT reads ../shared's replay buffer.
+# OUT (default outputs/study_cpu_v2) is the study's output dir.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+out="${OUT:-outputs/study_cpu_v2}"
+zarr=../shared/data/pusht/pusht_cchi_v7_replay.zarr
+study=(.venv/bin/pacdp-study --preset=cpu_v2 --output_dir="$out" --pusht_zarr="$zarr")
+export HF_HUB_OFFLINE=1
+task="${1:?usage: $0 lift|can|pusht SEED... | publish}"
+shift
+if [ "$task" != publish ]; then
+  for seed in "${@:?give one or more seeds (0 1 2)}"; do
+    "${study[@]}" --tasks="[$task]" --seeds="[$seed]"
+  done
+fi
+# Tables over every piece trained so far (metrics and success rates are cached per task and seed).
+tasks=$(ls "$out/metrics/main" 2>/dev/null | paste -sd, -)
+[ -n "$tasks" ] || { echo "nothing finished yet under $out" >&2; exit 1; }
+"${study[@]}" --tasks="[$tasks]" --train=false
+dest=results/study_cpu_v2
+rm -rf "$dest.tmp" && mkdir -p "$dest.tmp"
+cp -r "$out/results/." "$dest.tmp/"
+(cd "$out" && find metrics/main -name metrics.json -o -name success.json) | while read -r f; do
+  mkdir -p "$dest.tmp/$(dirname "$f")" && cp "$out/$f" "$dest.tmp/$f"
+done
+rm -rf "$dest" && mv "$dest.tmp" "$dest"
+echo "tables of the finished pieces: $dest (evidence.md, summary.json, paired.json, tables.md, figures/)"
