@@ -57,3 +57,17 @@ def test_the_committed_tables_regenerate_from_their_metrics_files(tmp_path, push
         (committed / "tables.md").read_text()
     )
     assert {p.name for p in (results / "figures").iterdir()} == {p.name for p in (committed / "figures").iterdir()}
+
+
+def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_files(tmp_path):
+    """results/study_cpu_v2 commits each (task, seed)'s metrics.json and success.json as the study keeps them."""
+    committed = RESULTS / "study_cpu_v2"
+    shutil.copytree(committed / "metrics", tmp_path / "metrics")
+    tasks = ",".join(sorted(p.name for p in (committed / "metrics" / "main").iterdir()))
+    argv = ["--preset=cpu_v2", f"--output_dir={tmp_path}", f"--tasks=[{tasks}]", "--train=false"]
+    assert runner.main(argv) == 0
+    for name in ("summary.json", "paired.json", "evidence.md", "runs.csv", "dynamics.csv", "tables.csv"):
+        assert (tmp_path / "results" / name).read_text() == (committed / name).read_text(), name
+    rows = json.loads((committed / "summary.json").read_text())
+    assert {r["method"] for r in rows} == {"DP", "BDP", "PAC-DP"}
+    assert all(r["n_episodes"] >= 50 and r["success_rate"] is not None for r in rows)
