@@ -32,5 +32,6 @@ cp -r "$out/results/." "$dest.tmp/"
 (cd "$out" && find metrics/main -name metrics.json -o -name success.json) | while read -r f; do
   mkdir -p "$dest.tmp/$(dirname "$f")" && cp "$out/$f" "$dest.tmp/$f"
 done
+[ -f "$dest/README.md" ] && cp "$dest/README.md" "$dest.tmp/"  # the hand-written notes stay
 rm -rf "$dest" && mv "$dest.tmp" "$dest"
 echo "tables of the finished pieces: $dest (evidence.md, summary.json, paired.json, tables.md, figures/)"

@@ -241,7 +241,8 @@ def test_dry_run_prints_the_plan(tmp_path, capsys, pusht_zarr):
 
 @pytest.mark.slow
 def test_tiny_study_end_to_end_through_lerobot_train(tmp_path, monkeypatch):
-    """Two methods x one seed through the real lerobot-train (a few steps), then metrics and tables."""
+    """Two methods x one seed through the real lerobot-train (a few steps), then metrics, the two final
+    checkpoints' rollouts side by side (spawned workers) and the tables."""
     from pacdp_testing import make_tiny_dataset
 
     monkeypatch.setattr(executors, "POLL_S", 0.2)
@@ -255,7 +256,7 @@ def test_tiny_study_end_to_end_through_lerobot_train(tmp_path, monkeypatch):
     task = TaskPreset("pusht", config, demos=(3,), heldout=2, steps=4, save_freq=2, reference_kl_weight=1e-4,
                       dataset_root=str(tmp_path / "data"))  # fmt: skip
     preset = dataclasses.replace(base, tasks=(task,), seeds=(0,), prior_rhos=(-4.5,), jobs=2, last_k=2,
-                                 nll_steps=4, success_episodes=0, perf_rows=())  # fmt: skip
+                                 nll_steps=4, success_episodes=2, success_last_k=1, perf_rows=())  # fmt: skip
     specs = [s for s in plan_task(task, preset, num_episodes=6) if s.method != "BDP"]
     _write_requests(specs, preset, tmp_path)
     for spec in specs:  # point the runs at the tiny dataset
@@ -276,8 +277,10 @@ def test_tiny_study_end_to_end_through_lerobot_train(tmp_path, monkeypatch):
     assert "Table I" in markdown and "Performance" in markdown
     assert (tmp_path / "results" / "figures" / "main_pusht_d003" / "npe.png").is_file()
     summary = json.loads((tmp_path / "results" / "summary.json").read_text())
-    assert [(r["method"], r["step"], r["n_episodes"]) for r in summary] == [("DP", 4, 0), ("PAC-DP", 4, 0)]
-    assert all(r["heldout_npe"] > 0 and r["success_rate"] is None for r in summary)
+    assert [(r["method"], r["step"], r["n_episodes"]) for r in summary] == [("DP", 4, 2), ("PAC-DP", 4, 2)]
+    assert all(r["heldout_npe"] > 0 and r["success_rate"] in (0.0, 0.5, 1.0) for r in summary)
+    cache = json.loads((evaluation.metrics_dir(tmp_path, "main", "pusht", 0) / "success.json").read_text())
+    assert sorted(Path(c).parts[-2] for c in cache["rates"]) == ["000004", "000004"]  # both final checkpoints
 
 
 def test_performance_table_runs_each_rows_benchmark_and_reads_its_ratios(tmp_path, monkeypatch):

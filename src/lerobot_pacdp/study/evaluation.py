@@ -10,7 +10,10 @@ those files alone.
 
 import json
 import logging
+import multiprocessing
 from collections import defaultdict
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import draccus
@@ -82,8 +85,8 @@ def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfini
 
 
 def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path, evaluate: bool = True) -> None:
-    """Success rate of each run's last `success_last_k` checkpoints, cached in `cache_file`; with `evaluate`
-    false only cached rates are used (the checkpoints are not on disk)."""
+    """Success rate of each run's last `success_last_k` checkpoints, cached in `cache_file` as each lands; with
+    `evaluate` false only cached rates are used (the checkpoints are not on disk)."""
     task = preset.task(rows[0]["task"])
     env_dict = task.train_config["env"]
     settings = {"episodes": preset.success_episodes, "seed": 0, "env": env_dict}
@@ -95,16 +98,41 @@ def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path, evalua
     wanted = [r["checkpoint"] for run_rows in by_run.values()
               for r in sorted(run_rows, key=lambda r: r["step"])[-preset.success_last_k :]]  # fmt: skip
     todo = [c for c in wanted if c not in rates] if evaluate else []
-    if todo:
-        from lerobot.envs.configs import EnvConfig
-
-        env_cfg = draccus.decode(EnvConfig, env_dict)
-        n_envs = min(10, preset.success_episodes)
-        for ckpt in todo:  # `success_rate` makes fresh envs for each checkpoint (LeRobot's loop closes them)
-            loaded = load_policy(ckpt, preset.device)
-            rates[ckpt] = success_rate(loaded, env_cfg, n_envs, preset.success_episodes, seed=0)
-            logger.info("success rate %s: %.3f over %d rollouts", ckpt, rates[ckpt], preset.success_episodes)
-            write_json_atomic(cache_file, {"settings": settings, "rates": rates})
+    for ckpt, rate in _rollouts(todo, env_dict, preset):
+        rates[ckpt] = rate
+        logger.info("success rate %s: %.3f over %d rollouts", ckpt, rate, preset.success_episodes)
+        write_json_atomic(cache_file, {"settings": settings, "rates": rates})
     for row in rows:
         if row["checkpoint"] in rates:
             row["success_rate"] = rates[row["checkpoint"]]
+
+
+def checkpoint_success_rate(checkpoint: str, env_dict: dict, episodes: int, device: str | None) -> float:
+    """`success_rate` of one checkpoint over `episodes` rollouts (seeds 0..episodes-1) in fresh envs (LeRobot's
+    loop closes the envs it is given)."""
+    from lerobot.envs.configs import EnvConfig
+
+    env_cfg = draccus.decode(EnvConfig, env_dict)
+    return success_rate(load_policy(checkpoint, device), env_cfg, min(10, episodes), episodes, seed=0)
+
+
+def _one_thread_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _rollouts(checkpoints: list[str], env_dict: dict, preset: Preset) -> Iterator[tuple[str, float]]:
+    """(checkpoint, success rate) as each finishes: `preset.jobs` checkpoints side by side (one thread each, in
+    spawned processes; rollouts are most of a CPU study's metrics time), or one after another."""
+    episodes = preset.success_episodes
+    if preset.jobs < 2 or len(checkpoints) < 2:
+        for ckpt in checkpoints:
+            yield ckpt, checkpoint_success_rate(ckpt, env_dict, episodes, preset.device)
+        return
+    workers = min(preset.jobs, len(checkpoints))
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_one_thread_worker) as pool:  # fmt: skip
+        futures = {pool.submit(checkpoint_success_rate, c, env_dict, episodes, preset.device): c for c in checkpoints}
+        for future in as_completed(futures):
+            yield futures[future], future.result()
