@@ -33,7 +33,7 @@ class PairedComparison:
     p_value: float  # exact two-sided sign-flip permutation test
 
 
-def _at_reference(row: dict, references: dict[str, tuple[float, float]]) -> bool:
+def at_reference_point(row: dict, references: dict[str, tuple[float, float]]) -> bool:
     """DP, or BDP / PAC-DP at the task's reference rho (and, for PAC-DP, its reference lambda)."""
     kl, rho = references[row["task"]]
     if row["method"] == "DP":
@@ -46,7 +46,7 @@ def final_rows(rows: list[dict], n_episodes: int, references: dict[str, tuple[fl
     """One row per run (its last checkpoint) of DP, BDP and PAC-DP at each task's reference point, sorted."""
     last: dict[str, dict] = {}
     for row in rows:
-        if _at_reference(row, references) and (row["run"] not in last or row["step"] > last[row["run"]]["step"]):
+        if at_reference_point(row, references) and (row["run"] not in last or row["step"] > last[row["run"]]["step"]):
             last[row["run"]] = row
     result = []
     for row in last.values():

@@ -26,7 +26,7 @@ from pathlib import Path
 from lerobot_pacdp.atomic_io import write_text_atomic
 from lerobot_pacdp.metrics.sweep import plot_metrics, summarize
 from lerobot_pacdp.study.evaluation import SPEC_FIELDS
-from lerobot_pacdp.study.evidence import final_rows, paired_comparisons, render_evidence
+from lerobot_pacdp.study.evidence import at_reference_point, final_rows, paired_comparisons, render_evidence
 from lerobot_pacdp.study.plan import RunSpec
 from lerobot_pacdp.study.presets import Preset
 from lerobot_pacdp.study.state import run_state
@@ -183,8 +183,7 @@ def plot_reference_curves(rows: list[dict], references: dict, figures_dir: Path)
     """Fig. 3-style curves per (group, task, demos): DP, BDP and PAC-DP at the reference point."""
     panels: dict[tuple, list[dict]] = defaultdict(list)
     for row in rows:
-        ref_kl, ref_rho = references[row["task"]]
-        if row["method"] == "DP" or (row["prior_rho"] == ref_rho and row["kl_weight"] in (0.0, ref_kl)):
+        if at_reference_point(row, references):
             panels[(row["group"], row["task"], row["demos"])].append(row | {"label": row["method"]})
     for (group, task, demos), panel_rows in panels.items():
         directory = figures_dir / f"{group}_{task}_d{demos:03d}"
