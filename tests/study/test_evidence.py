@@ -8,6 +8,7 @@ import pytest
 
 from lerobot_pacdp.rollout_summary import wilson_interval
 from lerobot_pacdp.study.data import count_episodes, prepare_dataset
+from lerobot_pacdp.study.evaluation import success_checkpoints
 from lerobot_pacdp.study.evidence import final_rows, paired_comparisons, render_evidence, sign_flip_p_value
 from lerobot_pacdp.study.plan import plan_task
 from lerobot_pacdp.study.presets import ScriptedDemos, get_preset
@@ -19,6 +20,7 @@ def test_the_cpu_v2_preset_plans_dp_bdp_and_pacdp_on_lift_can_and_pusht_with_thr
     preset = get_preset("cpu_v2")
     assert [(t.name, t.demos) for t in preset.tasks] == [("lift", (20, 40)), ("can", (20, 40)), ("pusht", (20,))]
     assert preset.seeds == (0, 1, 2) and preset.success_episodes == 50 and preset.last_k == 1
+    assert (preset.success_last_k, preset.success_every) == (1, 1000)  # the final checkpoint, and curves
     lift = preset.task("lift")
     specs = plan_task(lift, preset, num_episodes=count_episodes(lift, tmp_path, pusht_zarr=None))
     assert len(specs) == 2 * 3 * 3  # demos x methods x seeds
@@ -89,3 +91,11 @@ def test_paired_comparison_matches_runs_by_demos_and_seed():
     assert npe.mean_difference == pytest.approx((0.05 - 0.02 - 0.10) / 3)
     markdown = render_evidence(summary, paired_comparisons(summary))
     assert "| lift | 20 | DP | 0.700 ± 0.100 (n=3) |" in markdown and "s0: 8/10" in markdown
+
+
+def test_success_checkpoints_are_the_last_k_and_every_kth_step_in_step_order():
+    rows = [{"checkpoint": f"c{step}", "step": step} for step in (3000, 500, 1000, 1500, 2000, 2500)]
+    assert success_checkpoints(rows, last_k=1) == ["c3000"]
+    assert success_checkpoints(rows, last_k=1, every=1000) == ["c1000", "c2000", "c3000"]
+    assert success_checkpoints(rows, last_k=2, every=1500) == ["c1500", "c2500", "c3000"]
+    assert success_checkpoints(rows, last_k=0, every=2000) == ["c2000"]

@@ -85,8 +85,8 @@ def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfini
 
 
 def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path, evaluate: bool = True) -> None:
-    """Success rate of each run's last `success_last_k` checkpoints, cached in `cache_file` as each lands; with
-    `evaluate` false only cached rates are used (the checkpoints are not on disk)."""
+    """Success rate of each run's `success_checkpoints`, cached in `cache_file` as each lands; with `evaluate`
+    false only cached rates are used (the checkpoints are not on disk)."""
     task = preset.task(rows[0]["task"])
     env_dict = task.train_config["env"]
     settings = {"episodes": preset.success_episodes, "seed": 0, "env": env_dict}
@@ -95,8 +95,8 @@ def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path, evalua
     by_run: dict[str, list[dict]] = defaultdict(list)
     for row in rows:
         by_run[row["run"]].append(row)
-    wanted = [r["checkpoint"] for run_rows in by_run.values()
-              for r in sorted(run_rows, key=lambda r: r["step"])[-preset.success_last_k :]]  # fmt: skip
+    wanted = [c for run_rows in by_run.values()
+              for c in success_checkpoints(run_rows, preset.success_last_k, preset.success_every)]  # fmt: skip
     todo = [c for c in wanted if c not in rates] if evaluate else []
     for ckpt, rate in _rollouts(todo, env_dict, preset):
         rates[ckpt] = rate
@@ -105,6 +105,14 @@ def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path, evalua
     for row in rows:
         if row["checkpoint"] in rates:
             row["success_rate"] = rates[row["checkpoint"]]
+
+
+def success_checkpoints(run_rows: list[dict], last_k: int, every: int = 0) -> list[str]:
+    """The checkpoints of one run to roll out, by step: its last `last_k`, and (for the success curves) each
+    one whose step is a multiple of `every` (0: none)."""
+    ordered = sorted(run_rows, key=lambda r: r["step"])
+    last = {r["checkpoint"] for r in ordered[-last_k:]} if last_k > 0 else set()
+    return [r["checkpoint"] for r in ordered if r["checkpoint"] in last or (every > 0 and r["step"] % every == 0)]
 
 
 def checkpoint_success_rate(checkpoint: str, env_dict: dict, episodes: int, device: str | None) -> float:

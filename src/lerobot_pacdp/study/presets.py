@@ -109,6 +109,7 @@ class Preset:
     long_pair_save_freq: int = 0
     long_pair_chunk_steps: int | None = None  # each invocation trains a long run this many more steps
     long_pair_batch_size: int | None = None  # None: the task's own batch size
+    success_every: int = 0  # also roll out each checkpoint whose step is a multiple of this (success curves)
 
     def task(self, name: str) -> TaskPreset:
         for task in self.tasks:
@@ -200,6 +201,7 @@ def _cpu_v2_preset() -> Preset:
         metrics_batch_size=256,
         success_episodes=50,
         success_last_k=1,
+        success_every=1000,
         device="cpu",
         perf_rows=(PerfRow("cpu", 64),),
     )
