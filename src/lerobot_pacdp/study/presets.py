@@ -101,6 +101,7 @@ class Preset:
     metrics_batch_size: int
     success_episodes: int  # rollouts per evaluated checkpoint (0: no success rate)
     success_last_k: int  # success rate on each run's last k checkpoints only (rollouts are costly)
+    success_every: int  # also roll out each checkpoint whose step is a multiple of this (success curves; 0: none)
     device: str | None
     perf_rows: tuple[PerfRow, ...]  # the performance table
     # The long runs (`--long_pair=true`): DP, BDP and PAC-DP at the reference point, first seed.
@@ -109,7 +110,6 @@ class Preset:
     long_pair_save_freq: int = 0
     long_pair_chunk_steps: int | None = None  # each invocation trains a long run this many more steps
     long_pair_batch_size: int | None = None  # None: the task's own batch size
-    success_every: int = 0  # also roll out each checkpoint whose step is a multiple of this (success curves)
 
     def task(self, name: str) -> TaskPreset:
         for task in self.tasks:
@@ -148,6 +148,7 @@ def _cpu_preset() -> Preset:
         metrics_batch_size=256,
         success_episodes=10,
         success_last_k=1,
+        success_every=0,
         device="cpu",
         # The paper U-Net is slow on a CPU: 10 timed steps and 5 chunks each.
         perf_rows=(PerfRow("cpu", 64), PerfRow("paper", 8, train_steps=10, latency_calls=5)),
@@ -243,6 +244,7 @@ def _paper_preset() -> Preset:
         metrics_batch_size=1024,
         success_episodes=1000,
         success_last_k=10,
+        success_every=0,
         device=None,
         perf_rows=(PerfRow("paper", 256),),
         long_pair_demos=20,
