@@ -150,6 +150,19 @@ def test_compat_reset_observation_has_no_zeroed_relative_fields(square_env):
     np.testing.assert_allclose(rel, raw_env._get_observations(force_update=True)["SquareNut_to_robot0_eef_pos"])
 
 
+def test_set_state_observes_the_restored_state_not_the_one_before(square_env):
+    """Difference 4 after a restore: the nut's position in the gripper frame, R_eef^T (p_nut - p_eef)."""
+    from robosuite.utils.transform_utils import quat2mat
+
+    square_env.reset(seed=4)
+    restored = square_env.get_state()
+    for _ in range(10):  # move the arm away, so the previous pass's poses differ from the restored ones
+        square_env.step(np.array([0.8, 0.8, 0.8, 0.0, 0.0, 0.0, -1.0]))
+    raw = square_env.set_state(restored)
+    oracle = quat2mat(raw["robot0_eef_quat"]).T @ (raw["SquareNut_pos"] - raw["robot0_eef_pos"])
+    np.testing.assert_allclose(raw["SquareNut_to_robot0_eef_pos"], oracle, atol=1e-6)
+
+
 def test_compat_physics_and_controller_frame(lift_env, lift_env_legacy):
     assert lift_env_legacy.robosuite_env.lite_physics is False
     for env, frame in ((lift_env, "base"), (lift_env_legacy, "world")):

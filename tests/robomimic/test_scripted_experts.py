@@ -63,6 +63,25 @@ def test_can_and_square_experts_succeed(task, episodes):
     assert all(length < 400 for length in stats.success_lengths)
 
 
+def test_recorded_can_observations_are_what_the_environment_observes():
+    """Frame 0 equals the reset observation and every frame the one seen on restoring its state (the
+    relative fields once held the previous state's can: frame 0 pointed at where the last episode left it)."""
+    from lerobot_pacdp.robomimic.env import RobomimicEnv
+
+    env = RobomimicEnv("can", render_mode=None)
+    try:
+        expert = scripted_experts.CanExpert(env.robosuite_env, np.random.default_rng(0))
+        success, demo = scripted_experts.run_episode(env, expert, seed=3)
+        assert success
+        reset_obs, _ = env.reset(seed=3)
+        np.testing.assert_allclose(demo.obs["object"][0], reset_obs["environment_state"], atol=1e-9)
+        for t in (len(demo) // 2, len(demo) - 1):  # the can moves with the gripper in the second half
+            restored = env.set_state(demo.states[t])
+            np.testing.assert_allclose(demo.obs["object"][t][:3], restored["Can_to_robot0_eef_pos"], atol=1e-9)
+    finally:
+        env.close()
+
+
 def test_cli_writes_a_file_and_reports_the_success_rate(tmp_path, capsys):
     out = tmp_path / "demos.hdf5"
     argv = ["--task=lift", "--num_demos=2", f"--output={out}", "--seed=1", "--action_noise=0.02"]

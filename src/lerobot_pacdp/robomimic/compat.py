@@ -10,9 +10,10 @@ file sees the world through the old conventions, so rollouts in 1.5 must be tran
 3. Transport: the two boolean flags moved from the end of `object` to just after `trash_bin_pos`; and the
    robot bases are rotated +-90 deg in 1.5, whose OSC controller reads deltas in the base frame by
    default, while old files hold world-frame deltas -> `input_ref_frame="world"` for every arm.
-4. robosuite 1.5 returns zeros for the `*_to_robot0_eef_*` fields in the observation `reset()` returns;
-   `env._get_observations(force_update=True)` right after the reset gives the right values. (The gym
-   environment always does this, in both modes.)
+4. robosuite 1.5 returns zeros for the `*_to_robot0_eef_*` fields in the observation `reset()` returns,
+   and after a state restore one forced update pairs them with the previous state's object poses; two
+   forced updates (`env.current_observations`) give the right values. (The gym environment always does
+   this, in both modes, after resets and `set_state`.)
 5. Seeding: robosuite 1.5.2 draws object placements from `env.rng` / the samplers' `rng`, older ones
    (and 1.5.1, which this project pins) from numpy's global generator. The gym environment seeds both.
 

@@ -150,11 +150,22 @@ def seeded_reset_rngs(env, seed: int) -> Iterator[None]:
         np.random.set_state(saved)
 
 
+def current_observations(env) -> dict[str, np.ndarray]:
+    """The observations of the simulator's current state (difference 4).
+
+    robosuite 1.5 computes `*_to_robot0_eef_*` before the object poses they read from the observation
+    cache, so one forced pass after a reset or a state restore pairs them with the previous pass's poses
+    (after `set_state`, another episode's can); a second pass reads the fresh ones.
+    """
+    env._get_observations(force_update=True)
+    return env._get_observations(force_update=True)
+
+
 def robosuite_reset(env, seed: int) -> dict[str, np.ndarray]:
-    """Reset deterministically and return correct observations (difference 4: force an update)."""
+    """Reset deterministically and return correct observations."""
     with seeded_reset_rngs(env, seed):
         env.reset()
-    return env._get_observations(force_update=True)
+    return current_observations(env)
 
 
 def observation_vectors(
@@ -256,7 +267,7 @@ class RobomimicEnv(gym.Env):
         """Restore a flattened MuJoCo state ([time, qpos, qvel]) and return the raw robosuite observation."""
         self._env.sim.set_state_from_flattened(np.asarray(state, dtype=np.float64))
         self._env.sim.forward()
-        return self._env._get_observations(force_update=True)
+        return current_observations(self._env)
 
     def get_state(self) -> np.ndarray:
         """The flattened MuJoCo state, as robomimic files store it in `states`."""
