@@ -88,6 +88,15 @@ def test_bad_inputs_fail_clearly():
         with_overrides(get_preset("cpu"), kl_weights=[0.0])
     with pytest.raises(StudyError, match="distinct"):
         with_overrides(get_preset("cpu"), seeds=[0, 0])
+    with pytest.raises(StudyError, match="success_every must be >= 0"):
+        with_overrides(get_preset("cpu_v2"), success_every=-1)
+
+
+def test_success_every_override_replaces_the_presets_and_none_keeps_it():
+    preset = get_preset("cpu_v2")
+    assert with_overrides(preset, success_every=5000).success_every == 5000
+    assert with_overrides(preset, success_every=0).success_every == 0
+    assert with_overrides(preset).success_every == preset.success_every == 1000
 
 
 def test_dp_is_pacdps_twin_and_lerobot_dp_has_the_same_diffusion_settings(tmp_path):

@@ -289,6 +289,7 @@ def with_overrides(
     prior_rhos: list[float] | None = None,
     jobs: int | None = None,
     success_episodes: int | None = None,
+    success_every: int | None = None,
 ) -> Preset:
     """The preset with CLI overrides applied (None keeps the preset's value), validated."""
     selected = [preset.task(name) for name in tasks] if tasks else list(preset.tasks)
@@ -308,6 +309,7 @@ def with_overrides(
         prior_rhos=tuple(prior_rhos) if prior_rhos is not None else preset.prior_rhos,
         jobs=jobs if jobs is not None else preset.jobs,
         success_episodes=success_episodes if success_episodes is not None else preset.success_episodes,
+        success_every=success_every if success_every is not None else preset.success_every,
     )
     validate(preset)
     return preset
@@ -322,6 +324,8 @@ def validate(preset: Preset) -> None:
         raise StudyError(f"PAC-DP kl_weights must be > 0 (lambda 0 is BDP), got {list(preset.kl_weights)}.")
     if preset.jobs < 1:
         raise StudyError(f"jobs must be >= 1, got {preset.jobs}.")
+    if preset.success_every < 0:
+        raise StudyError(f"success_every must be >= 0 (0: only the final checkpoints), got {preset.success_every}.")
     for task in preset.tasks:
         if not task.demos or any(d < 1 for d in task.demos):
             raise StudyError(f"{task.name}: demos must be positive training-demo counts, got {list(task.demos)}.")

@@ -60,6 +60,7 @@ class StudyConfig:
     metrics: bool = True  # false: train only
     report_unfinished: bool = False  # also report runs stopped before their last step, up to their last checkpoint
     success_episodes: int | None = None  # rollouts per evaluated checkpoint (0: no success rate)
+    success_every: int | None = None  # also roll out checkpoints at multiples of this step (0: final only)
     perf: bool = False  # also (re)measure the performance table (lerobot_pacdp.speed_benchmark)
     trainer: str | None = None  # command replacing lerobot-train (for tests); its args are the same
 
@@ -71,6 +72,7 @@ def resolve_preset(cfg: StudyConfig) -> Preset:
     return with_overrides(
         preset, tasks=cfg.tasks, demos=cfg.demos, seeds=cfg.seeds, steps=cfg.steps, save_freq=cfg.save_freq,
         kl_weights=cfg.kl_weights, prior_rhos=cfg.prior_rhos, jobs=cfg.jobs, success_episodes=cfg.success_episodes,
+        success_every=cfg.success_every,
     )  # fmt: skip
 
 
