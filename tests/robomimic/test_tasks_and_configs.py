@@ -18,7 +18,7 @@ from lerobot_pacdp.configuration_pacdp import PacdpConfig
 from lerobot_pacdp.robomimic import compat
 from lerobot_pacdp.robomimic.env_config import RobomimicEnvConfig, gym_id
 from lerobot_pacdp.robomimic.tasks import TASKS, get_task, layout_names
-from lerobot_pacdp.robomimic.train_configs import CPU_TASKS, expected_files
+from lerobot_pacdp.robomimic.train_configs import CPU_RECIPES, CPU_TASKS, expected_files
 
 CONFIG_DIR = Path(__file__).parents[2] / "configs" / "robomimic"
 
@@ -223,12 +223,21 @@ def test_paper_config_parses_with_the_paper_settings(name):
 @pytest.mark.parametrize("name", CPU_TASKS)
 def test_cpu_preset_parses_as_a_small_model_with_the_cpu_recipe(name):
     config = draccus.parse(config_class=TrainPipelineConfig, config_path=CONFIG_DIR / f"{name}_cpu.json", args=[])
-    assert config.policy.down_dims == (32, 64, 128) and config.batch_size == 64 and config.steps == 3000
-    # The recipe reaches lerobot-train's optimizer and scheduler presets (lr 6e-3, 100 warm-up steps).
-    assert config.policy.get_optimizer_preset().lr == 6e-3
+    recipe = CPU_RECIPES[name]
+    assert config.policy.down_dims == (32, 64, 128) and config.batch_size == 64 and config.steps == recipe.steps
+    assert config.save_freq == config.eval_steps == recipe.save_freq
+    # The recipe reaches lerobot-train's optimizer and scheduler presets (its lr, 100 warm-up steps).
+    assert config.policy.get_optimizer_preset().lr == recipe.optimizer_lr
     assert config.policy.get_scheduler_preset().num_warmup_steps == 100
     assert config.policy.device == "cpu" and config.env.robosuite_compat == "1.5"
     assert config.policy.kl_weight == TASKS[name].kl_weight
+
+
+def test_can_trains_longer_at_a_lower_rate_than_lift():
+    """The measured recipes (results/recipes/{lift,can}): Lift 3000 steps at 6e-3, Can 20000 at 3e-3."""
+    assert (CPU_RECIPES["lift"].steps, CPU_RECIPES["lift"].optimizer_lr) == (3000, 6e-3)
+    assert (CPU_RECIPES["can"].steps, CPU_RECIPES["can"].optimizer_lr) == (20_000, 3e-3)
+    assert set(CPU_RECIPES) == set(CPU_TASKS) == {"lift", "can", "square"}
 
 
 def test_layout_names_for_flags_and_generic_vectors():

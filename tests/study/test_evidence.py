@@ -33,6 +33,8 @@ def test_the_cpu_v2_preset_plans_dp_bdp_and_pacdp_on_lift_can_and_pusht_with_thr
         assert len(heldout) == 20 and all(heldout.isdisjoint(s.train_episodes) for s in runs)
         assert {len(s.train_episodes) for s in runs} == {20, 40}
     assert lift.steps == 3000 and lift.train_config["policy"]["optimizer_lr"] == 6e-3  # lift_cpu.json's recipe
+    can = preset.task("can")
+    assert (can.steps, can.save_freq, can.train_config["policy"]["optimizer_lr"]) == (20_000, 2500, 3e-3)  # can_cpu.json's
 
 
 @pytest.mark.slow

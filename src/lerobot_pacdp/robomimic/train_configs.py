@@ -5,10 +5,9 @@
   140 train / 60 held out (`episodes=[0..199]`, `eval_split=0.3`), evaluated with
   `--env.robosuite_compat=1.4` (the released files were recorded with robosuite <= 1.4).
 - `<task>_cpu.json` (Lift, Can, Square): the CPU recipe for scripted demos (robosuite 1.5 data,
-  `robosuite_compat=1.5`): a small U-Net (down_dims 32/64/128), batch 64, lr 6e-3 with 100 warm-up steps
-  and a cosine decay over 3000 steps, chosen from the measured curves and the learning-rate sweep of
-  PAC-DP in results/recipes/lift (DP's lr 1e-4 with 500 warm-up steps is sized for 10^5-10^6 steps and
-  leaves PAC-DP far from converged at 3000; the weight noise makes PAC-DP want a higher rate than DP).
+  `robosuite_compat=1.5`): a small U-Net (down_dims 32/64/128), batch 64, 100 warm-up steps and a cosine
+  decay, with each task's rate and budget in `CPU_RECIPES` (DP's lr 1e-4 with 500 warm-up steps is sized
+  for 10^5-10^6 steps and leaves PAC-DP far from converged at these budgets).
 
 Regenerate after changing the task table: `python -m lerobot_pacdp.robomimic.train_configs` (into the
 package's `configs/robomimic`, which the checkout's `configs/` links to; `--output_dir=DIR` elsewhere). A
@@ -31,7 +30,26 @@ from lerobot_pacdp.robomimic.tasks import PAPER_EVAL_FRACTION, PAPER_NUM_DEMOS, 
 # rho and delta: PacdpConfig's defaults are the paper's (its single source).
 PAPER_PRIOR_RHO = PacdpConfig.__dataclass_fields__["prior_rho"].default
 PAPER_DELTA = PacdpConfig.__dataclass_fields__["delta"].default
-CPU_TASKS = ("lift", "can", "square")  # the tasks with scripted experts
+
+
+@dataclass(frozen=True)
+class CpuRecipe:
+    """The peak learning rate, training steps and checkpoint interval of a `<task>_cpu.json`."""
+
+    optimizer_lr: float
+    steps: int
+    save_freq: int
+
+
+# Chosen from measured curves: Lift from results/recipes/lift (PAC-DP's learning-rate sweep; it wants a
+# higher rate than DP), Can from results/recipes/can (3000-6000 steps leave it at 0.1-0.5 success; it climbs
+# up to ~15000 steps at lr 3e-3). Square (a scripted expert too) has Lift's recipe, not measured.
+CPU_RECIPES = {
+    "lift": CpuRecipe(optimizer_lr=6e-3, steps=3000, save_freq=500),
+    "can": CpuRecipe(optimizer_lr=3e-3, steps=20_000, save_freq=2500),
+    "square": CpuRecipe(optimizer_lr=6e-3, steps=3000, save_freq=500),
+}
+CPU_TASKS = tuple(CPU_RECIPES)  # the tasks with scripted experts
 
 
 def dataset_repo_id(task: str, scripted: bool = False) -> str:
@@ -69,7 +87,7 @@ def paper_config(task: str) -> dict:
 
 
 def cpu_config(task: str) -> dict:
-    t = get_task(task)
+    t, recipe = get_task(task), CPU_RECIPES[task]
     return {
         "dataset": {"repo_id": dataset_repo_id(t.name, scripted=True), "eval_split": 0.1},
         "env": {"type": "robomimic", "task": t.name, "robosuite_compat": compat.NATIVE},
@@ -80,15 +98,15 @@ def cpu_config(task: str) -> dict:
             "delta": PAPER_DELTA,
             "down_dims": [32, 64, 128],
             "diffusion_step_embed_dim": 64,
-            "optimizer_lr": 6e-3,
+            "optimizer_lr": recipe.optimizer_lr,
             "scheduler_warmup_steps": 100,
             "device": "cpu",
             "push_to_hub": False,
         },
-        "steps": 3000,
+        "steps": recipe.steps,
         "batch_size": 64,
-        "save_freq": 500,
-        "eval_steps": 500,
+        "save_freq": recipe.save_freq,
+        "eval_steps": recipe.save_freq,
         "env_eval_freq": 0,
         "log_freq": 100,
         "seed": 1000,
