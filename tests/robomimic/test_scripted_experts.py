@@ -56,18 +56,6 @@ def test_action_noise_diversifies_the_demos(scripted_lift):
     assert not np.allclose(clean[0].actions[:n, :6], noisy[0].actions[:n, :6])
 
 
-def test_recorded_planned_actions_are_the_executed_ones_without_their_noise(scripted_lift):
-    """Same seed, same noise draws: the same trajectory; the labels differ from the executed actions by the
-    noise alone (arm dimensions; the gripper command carries none)."""
-    _, executed, _ = scripted_lift
-    planned, _, _ = collect_demos("lift", 1, seed=7, action_noise=0.05, record_planned=True)
-    np.testing.assert_array_equal(planned[0].states, executed[0].states)
-    noise = executed[0].actions - planned[0].actions
-    np.testing.assert_array_equal(noise[:, 6], 0.0)
-    assert 0.03 < noise[:, :6].std() < 0.07  # N(0, 0.05^2) draws (clipping at +-1 aside)
-    assert np.abs(planned[0].actions[:, :3]).max() <= scripted_experts.ScriptedExpert.max_speed
-
-
 @pytest.mark.parametrize(("task", "episodes"), [("can", 2), ("square", 2)])
 def test_can_and_square_experts_succeed(task, episodes):
     stats = measure_success_rate(task, episodes, seed=0)
@@ -96,13 +84,12 @@ def test_recorded_can_observations_are_what_the_environment_observes():
 
 def test_cli_writes_a_file_and_reports_the_success_rate(tmp_path, capsys):
     out = tmp_path / "demos.hdf5"
-    argv = ["--task=lift", "--num_demos=2", f"--output={out}", "--seed=1", "--action_noise=0.02", "--record_planned_actions=true"]
+    argv = ["--task=lift", "--num_demos=2", f"--output={out}", "--seed=1", "--action_noise=0.02"]
     assert scripted_experts.main(argv) == 0
     assert "lift: 2/2 successful episodes (100%)" in capsys.readouterr().out
     with h5py.File(out, "r") as f:
         assert sorted(f["data"].keys()) == ["demo_0", "demo_1"]
-        recorded_with = json.loads(f["data"].attrs["scripted_expert"])
-        assert recorded_with["action_noise"] == 0.02 and recorded_with["record_planned_actions"] is True
+        assert json.loads(f["data"].attrs["scripted_expert"])["action_noise"] == 0.02
     assert scripted_experts.main(argv) == 2  # exists, no --overwrite
     assert "already exists" in capsys.readouterr().err
 

@@ -135,15 +135,7 @@ class ScriptedExpert:
         """The smallest turn that makes the fingers close along `closing_yaw` (modulo `symmetry`)."""
         return _wrap(closing_yaw - self.down_finger_yaw, symmetry)
 
-    def perturb(self, action: np.ndarray) -> np.ndarray:
-        """The action to execute: `action` with `action_noise` on the arm dimensions."""
-        noisy = action.copy()
-        if self.action_noise > 0:
-            noisy[:6] += self.rng.normal(0.0, self.action_noise, size=6)
-        return np.clip(noisy, -1.0, 1.0)
-
-    def planned_action(self) -> np.ndarray:
-        """The expert's noise-free action for the current state (advances the phase machine)."""
+    def act(self) -> np.ndarray:
         target, turn, gripper = self.plan()
         self.phase_steps += 1
         action = np.zeros(7)
@@ -152,6 +144,8 @@ class ScriptedExpert:
         goal = _rot_z(turn) @ self.down if turn is not None else self.down
         error = _axis_angle(goal @ self.arm.mat.T)
         action[3:6] = np.clip(error / ROT_SCALE, -self.max_rot_speed, self.max_rot_speed)
+        if self.action_noise > 0:
+            action[:6] += self.rng.normal(0.0, self.action_noise, size=6)
         action[6] = gripper
         return np.clip(action, -1.0, 1.0)
 
@@ -358,14 +352,8 @@ def _raw_obs_record(task: RobomimicTask, raw_obs: dict, object_vector: np.ndarra
     return record
 
 
-def run_episode(
-    env, expert: ScriptedExpert, seed: int | None = None, record: bool = True, record_planned: bool = False
-) -> tuple[bool, Demo | None]:
+def run_episode(env, expert: ScriptedExpert, seed: int | None = None, record: bool = True) -> tuple[bool, Demo | None]:
     """Roll the expert out once in a `RobomimicEnv` (native layout); returns (success, demo or None).
-
-    The noisy action is executed; the demo records it, or with `record_planned` the expert's noise-free
-    action for the state it saw (DART, Laskey et al. 2017: the labels show how to recover from the
-    perturbations instead of repeating them).
 
     Like robomimic's `dataset_states_to_obs.py`, the recorded observations are recomputed from the saved
     MuJoCo states (`obs[t]` is exactly what the environment observes after restoring `states[t]`;
@@ -382,10 +370,9 @@ def run_episode(
     for _ in range(env.episode_length):
         if record:
             states.append(env.get_state())
-        planned = expert.planned_action()
-        executed = expert.perturb(planned)
-        _, reward, success, truncated, _ = env.step(executed)
-        actions.append(planned if record_planned else executed)
+        action = expert.act()
+        _, reward, success, truncated, _ = env.step(action)
+        actions.append(action)
         rewards.append(reward)
         dones.append(int(success))
         if success or truncated:
@@ -431,7 +418,6 @@ def collect_demos(
     action_noise: float = 0.0,
     max_attempts: int | None = None,
     progress: bool = False,
-    record_planned: bool = False,
 ) -> tuple[list[Demo], CollectionStats, dict]:
     """Run the task's expert until `num_demos` successes (or `max_attempts`, default 3x); returns
     (successful demos, statistics, env_args). Deterministic for a given seed."""
@@ -458,7 +444,7 @@ def collect_demos(
     bar = tqdm(total=num_demos, desc=f"Scripted {robomimic_task.name} demos", unit="demo", disable=not progress)
     try:
         while len(demos) < num_demos and stats.attempts < max_attempts:
-            success, demo = run_episode(env, expert, seed if stats.attempts == 0 else None, True, record_planned)
+            success, demo = run_episode(env, expert, seed=seed if stats.attempts == 0 else None)
             stats.attempts += 1
             if success:
                 stats.successes += 1
@@ -505,7 +491,6 @@ class ScriptedDemosConfig:
     output: Path | None = None  # the hdf5 file to write
     seed: int = 0
     action_noise: float = 0.0  # std of Gaussian noise on the arm actions
-    record_planned_actions: bool = False  # record the expert's noise-free actions (DART) instead of the executed ones
     valid_fraction: float = 0.1  # share of the demos in mask/valid
     max_attempts: int | None = None  # give up after this many episodes (default: 3 x num_demos)
     overwrite: bool = False  # replace an existing output file
@@ -521,15 +506,14 @@ def record_scripted_demos(cfg: ScriptedDemosConfig) -> int:
     if not 0.0 <= cfg.valid_fraction < 1.0:
         raise UserInputError(f"--valid_fraction must be in [0, 1), got {cfg.valid_fraction}.")
     demos, stats, env_args = collect_demos(
-        task.name, cfg.num_demos, cfg.seed, cfg.action_noise, cfg.max_attempts, True, cfg.record_planned_actions
+        task.name, cfg.num_demos, cfg.seed, cfg.action_noise, cfg.max_attempts, progress=True
     )
     if not demos:
         raise UserInputError(f"the {task.name} expert succeeded in none of {stats.attempts} episodes; nothing written.")
     write_robomimic_hdf5(
         cfg.output, demos, env_args, split_masks(len(demos), cfg.valid_fraction, cfg.seed),
         data_attrs={
-            "scripted_expert": json.dumps({**stats.as_dict(), "seed": cfg.seed, "action_noise": cfg.action_noise,
-                                           "record_planned_actions": cfg.record_planned_actions})
+            "scripted_expert": json.dumps({**stats.as_dict(), "seed": cfg.seed, "action_noise": cfg.action_noise})
         },
     )  # fmt: skip
     summary = stats.as_dict()
