@@ -9,11 +9,18 @@
 #
 # The study records its 60 scripted Lift / Can demos itself (seed 0); PushT reads ../shared's replay buffer.
 # OUT (default outputs/study_cpu_v2) is the study's output dir.
+#
+# A longer budget than the task's CPU recipe, as its own study (own output and results dirs):
+#   STEPS=6000 DEMOS=20 SUCCESS_EVERY=2000 bash benchmarks/study_cpu_v2.sh lift 0 1 2
+#   -> outputs/study_cpu_v2_steps6000, results/study_cpu_v2_steps6000 (checkpoints every 1000 steps)
 set -euo pipefail
 cd "$(dirname "$0")/.."
-out="${OUT:-outputs/study_cpu_v2}"
+suffix="${STEPS:+_steps$STEPS}"
+out="${OUT:-outputs/study_cpu_v2$suffix}"
 zarr=../shared/data/pusht/pusht_cchi_v7_replay.zarr
-study=(.venv/bin/pacdp-study --preset=cpu_v2 --output_dir="$out" --pusht_zarr="$zarr")
+study=(.venv/bin/pacdp-study --preset=cpu_v2 --output_dir="$out" --pusht_zarr="$zarr"
+       ${STEPS:+--steps="$STEPS" --save_freq=1000} ${DEMOS:+--demos="[$DEMOS]"}
+       ${SUCCESS_EVERY:+--success_every="$SUCCESS_EVERY"})
 export HF_HUB_OFFLINE=1
 task="${1:?usage: $0 lift|can|pusht SEED... | publish}"
 shift
@@ -26,7 +33,7 @@ fi
 tasks=$(ls "$out/metrics/main" 2>/dev/null | paste -sd, -)
 [ -n "$tasks" ] || { echo "nothing finished yet under $out" >&2; exit 1; }
 "${study[@]}" --tasks="[$tasks]" --train=false
-dest=results/study_cpu_v2
+dest=results/study_cpu_v2$suffix
 rm -rf "$dest.tmp" && mkdir -p "$dest.tmp"
 cp -r "$out/results/." "$dest.tmp/"
 (cd "$out" && find metrics/main -name metrics.json -o -name success.json) | while read -r f; do
