@@ -6,7 +6,7 @@
 #   bash scripts/main_job.sh lerobot/pusht_keypoints                 # PushT from the hub
 #
 # Each run records or converts the demonstrations, trains with lerobot-train (progress bar and a loss line as
-# it goes), rolls out with lerobot-eval (50 episodes, distinct seeds, a few recorded as videos), measures the
+# it goes), rolls out with lerobot-eval (Lift 100 episodes, PushT 50, distinct seeds, a few as videos), measures the
 # held-out denoising error (NPE) and writes OUT/summary.json: success rate with its 95% interval, NPE,
 # training steps, wall time. Knobs: STEPS, EVAL_EPISODES, OUT, and DEMOS (Lift: how many to record) or
 # EPISODES (PushT: which demos, e.g. 0-39).
