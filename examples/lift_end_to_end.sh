@@ -5,8 +5,9 @@
 #   bash examples/lift_end_to_end.sh [OUTPUT_DIR]
 #
 # Knobs (environment variables): DEMOS (scripted demos to record, default 80), STEPS (training steps,
-# default 4000), EVAL_EPISODES (rollouts, default 100: a tighter interval than 50), CONFIG (default configs/robomimic/lift_cpu.json, the CPU
-# recipe; the paper's setting is configs/robomimic/lift.json on the released `ph` file, with STEPS= empty).
+# default 4000), EVAL_EPISODES (rollouts, default 100: a tighter interval than 50), CONFIG (default
+# configs/robomimic/lift_cpu.json, the CPU recipe; the paper's setting is configs/robomimic/lift.json on the
+# released `ph` file, with STEPS= empty).
 # 80 demos and 4000 steps, not the CPU recipe's 3000 steps on 40: side by side over three training seeds they
 # succeed more often (results/main_job/variants_2026-12-03.json); the CPU study keeps the recipe's budget.
 set -euo pipefail
