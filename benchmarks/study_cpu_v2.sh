@@ -15,6 +15,10 @@
 #   -> outputs/study_cpu_v2_steps6000, results/study_cpu_v2_steps6000 (checkpoints every 1000 steps)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+if [ -n "${DEMOS:-}" ] && [ -z "${STEPS:-}" ]; then  # a subset would overwrite the full study's tables
+  echo "DEMOS needs STEPS (a study of its own, e.g. STEPS=6000 DEMOS=20); unset DEMOS for the full study" >&2
+  exit 2
+fi
 suffix="${STEPS:+_steps$STEPS}"
 out="${OUT:-outputs/study_cpu_v2$suffix}"
 zarr=../shared/data/pusht/pusht_cchi_v7_replay.zarr
