@@ -358,6 +358,34 @@ def test_unfinished_runs_are_reported_only_when_asked(tmp_path, monkeypatch):
     assert sweep.episodes == list(specs[0].heldout_episodes)
 
 
+def test_a_later_call_over_other_demos_keeps_the_earlier_runs_metrics_rows_of_the_same_settings(tmp_path, monkeypatch):
+    monkeypatch.setattr(executors, "POLL_S", 0.05)
+    preset = dataclasses.replace(_tiny_preset(demos=(2, 3), seeds=(0,)), success_episodes=0)
+    specs = plan_task(preset.tasks[0], preset, num_episodes=8)
+    _write_requests(specs, preset, tmp_path)
+    _local(preset, tmp_path).run(specs)
+
+    def fake_sweep(cfg):  # as run_sweep: metrics.json gets the settings and the swept runs' rows only
+        rows = [{"label": label, "run": str(run), "checkpoint": f"{run}/6", "step": 6, "npe": 0.1}
+                for run, label in zip(cfg.runs, cfg.labels, strict=True)]  # fmt: skip
+        write_json_atomic(cfg.output_dir / "metrics.json", {"settings": {"nll_steps": cfg.nll_steps}, "rows": rows})
+        return rows, {}
+
+    monkeypatch.setattr(evaluation, "run_sweep", fake_sweep)
+    two, three = [s for s in specs if s.demos == 2], [s for s in specs if s.demos == 3]
+    metrics_file = evaluation.metrics_dir(tmp_path, specs[0].group, specs[0].task, 0) / "metrics.json"
+
+    def stored_labels() -> list[str]:
+        return sorted(row["label"] for row in json.loads(metrics_file.read_text())["rows"])
+
+    assert len(two) == len(three) == 3
+    evaluation.evaluate_runs(preset, two, tmp_path)
+    assert [row["demos"] for row in evaluation.evaluate_runs(preset, three, tmp_path)] == [3, 3, 3]
+    assert stored_labels() == sorted(s.name for s in specs)
+    evaluation.evaluate_runs(dataclasses.replace(preset, nll_steps=None), two, tmp_path)  # other settings
+    assert stored_labels() == sorted(s.name for s in two)
+
+
 def test_a_run_stopped_by_sigterm_is_paused_not_failed_and_resumes(tmp_path, monkeypatch):
     preset, spec = _one_fake_run(tmp_path, monkeypatch, FAKE_TRAINER_KILL_AT="2")
     outcome = _local(preset, tmp_path).run([spec])

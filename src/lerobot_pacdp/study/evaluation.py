@@ -38,11 +38,25 @@ def _spec_fields(spec: RunSpec) -> dict:
     return {name: getattr(spec, name) for name in SPEC_FIELDS}
 
 
+def _read_json(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
 def _stored_rows(directory: Path, names: set[str]) -> list[dict]:
-    path = directory / "metrics.json"
-    if not path.is_file():
-        return []
-    return [row for row in json.loads(path.read_text())["rows"] if row["label"] in names]
+    stored = _read_json(directory / "metrics.json")
+    return [row for row in stored["rows"] if row["label"] in names] if stored else []
+
+
+def _keep_other_runs_rows(path: Path, previous: dict | None, swept_runs: set[str]) -> None:
+    """`run_sweep` rewrites metrics.json with the swept runs' rows only; put back the rows of this seed's other
+    runs (a study called with a subset of its demos or methods) when they were computed with the same settings,
+    so that a later call over every run finds them cached."""
+    if previous is None:
+        return
+    current = json.loads(path.read_text())
+    others = [row for row in previous["rows"] if row["run"] not in swept_runs]
+    if others and previous.get("settings") == current["settings"]:
+        write_json_atomic(path, {"settings": current["settings"], "rows": current["rows"] + others})
 
 
 def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfinished: bool = False) -> list[dict]:
@@ -71,7 +85,9 @@ def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfini
                 last_k=preset.last_k,
                 device=preset.device,
             )
+            previous = _read_json(directory / "metrics.json")
             group_rows, _ = run_sweep(sweep)
+            _keep_other_runs_rows(directory / "metrics.json", previous, {str(run) for run in sweep.runs})
         elif not any(step_dirs(s.train_dir(output_dir)) for s in runs) and (group_rows := _stored_rows(directory, set(by_name))):
             logger.info("metrics: %s/%s seed %d from %s (no checkpoint of these runs on disk)", group, task, seed,
                         directory / "metrics.json")  # fmt: skip
