@@ -29,8 +29,9 @@ if [ "$task" != publish ]; then
     "${study[@]}" --tasks="[$task]" --seeds="[$seed]" ${DEMOS:+--demos="[$DEMOS]"}
   done
 fi
-# Tables over every piece trained so far (metrics and success rates are cached per task and seed).
-tasks=$(ls "$out/metrics/main" 2>/dev/null | paste -sd, -)
+# Tables over every piece trained so far (metrics and success rates are cached per task and seed; a piece
+# trained with --metrics=false gets them here).
+tasks=$( (ls "$out/runs" 2>/dev/null || true) | paste -sd, -)
 [ -n "$tasks" ] || { echo "nothing finished yet under $out" >&2; exit 1; }
 "${study[@]}" --tasks="[$tasks]" --train=false
 dest=results/study_cpu_v2$suffix
