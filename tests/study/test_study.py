@@ -322,7 +322,7 @@ def test_performance_table_runs_each_rows_benchmark_and_reads_its_ratios(tmp_pat
 
 def test_dynamics_find_the_best_checkpoint_and_the_rise_after_it():
     def row(run, method, step, npe, kl):
-        return {"run": f"/x/{run}", "name": run, "method": method, "demos": 20, "seed": 0, "step": step, "npe": npe,
+        return {"task": "lift", "run": f"/x/{run}", "name": run, "method": method, "demos": 20, "seed": 0, "step": step, "npe": npe,
                 "nll_bound": -2.0 - npe, "kl": kl}  # fmt: skip
 
     rows = [row("dp", "DP", 1000, 0.05, None), row("dp", "DP", 3000, 0.06, None), row("dp", "DP", 2000, 0.04, None),
@@ -332,8 +332,8 @@ def test_dynamics_find_the_best_checkpoint_and_the_rise_after_it():
     assert dp["npe_rise"] == pytest.approx(0.5) and dp["last_kl"] is None and dp["last_nll_bound"] == pytest.approx(-2.06)
     assert pac["best_step"] == pac["last_step"] == 2000 and pac["npe_rise"] == 0.0 and pac["last_kl"] == 12.0
     markdown = tables.render_dynamics([dp, pac])
-    assert "| dp | DP | 0.0400 | 2000 | 3000 | 0.0600 | +50.0% | -2.06 | -- |" in markdown
-    assert "| pac | PAC-DP | 0.0450 | 2000 | 2000 | 0.0450 | +0.0% | -2.045 | 12 |" in markdown
+    assert "| lift | dp | DP | 0.0400 | 2000 | 3000 | 0.0600 | +50.0% | -2.06 | -- |" in markdown
+    assert "| lift | pac | PAC-DP | 0.0450 | 2000 | 2000 | 0.0450 | +0.0% | -2.045 | 12 |" in markdown
 
 
 def test_unfinished_runs_are_reported_only_when_asked(tmp_path, monkeypatch):

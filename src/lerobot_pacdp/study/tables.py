@@ -208,7 +208,8 @@ def dynamics_rows(rows: list[dict]) -> list[dict]:
         run_rows.sort(key=lambda r: r["step"])
         best, last = min(run_rows, key=lambda r: r["npe"]), run_rows[-1]
         result.append({
-            "run": last["name"], "method": last["method"], "demos": last["demos"], "seed": last["seed"],
+            "task": last["task"], "run": last["name"], "method": last["method"], "demos": last["demos"],
+            "seed": last["seed"],
             "best_step": best["step"], "best_npe": best["npe"], "last_step": last["step"], "last_npe": last["npe"],
             "npe_rise": last["npe"] / best["npe"] - 1.0, "last_nll_bound": last.get("nll_bound"),
             "last_kl": last.get("kl"),
@@ -221,11 +222,11 @@ def render_dynamics(dynamics: list[dict]) -> str:
         return "--" if value is None else f"{value:.{digits}g}"
 
     lines = ["## Training dynamics: best held-out NPE and what followed it (one row per run)", "",
-             "| run | method | best NPE | at step | last step | NPE there | rise after best | NLL bound there | KL(Q‖P) there |",
-             "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "| task | run | method | best NPE | at step | last step | NPE there | rise after best | NLL bound there | KL(Q‖P) there |",
+             "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for d in dynamics:
-        lines.append(f"| {d['run']} | {d['method']} | {d['best_npe']:.4f} | {d['best_step']} | {d['last_step']} | "
-                     f"{d['last_npe']:.4f} | {d['npe_rise']:+.1%} | {num(d['last_nll_bound'], 4)} | {num(d['last_kl'], 4)} |")  # fmt: skip
+        lines.append(f"| {d['task']} | {d['run']} | {d['method']} | {d['best_npe']:.4f} | {d['best_step']} | "
+                     f"{d['last_step']} | {d['last_npe']:.4f} | {d['npe_rise']:+.1%} | {num(d['last_nll_bound'], 4)} | {num(d['last_kl'], 4)} |")  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
