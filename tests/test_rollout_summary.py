@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from lerobot_pacdp.rollout_summary import SuccessRate, main, success_rate_of, wilson_interval
+from lerobot_pacdp.rollout_summary import SuccessRate, average_max_reward, main, success_rate_of, wilson_interval
 
 
 def test_wilson_interval_matches_the_closed_form_by_hand():
@@ -49,6 +49,18 @@ def test_runs_split_over_processes_pool_their_episodes_and_must_not_share_seeds(
         success_rate_of(first, _eval_info([False, True], seeds=[1002, 1003]))
 
 
+def test_average_max_reward_pools_the_best_reward_of_every_episode_over_processes():
+    # LeRobot 0.6.1's per-task layout in one process, per-episode rows in the other: (1 + 0.5 + 0.25 + 0.75) / 4
+    per_task = {"per_task": [{"task_id": 0, "metrics": {"successes": [True, False], "max_rewards": [1.0, 0.5]}}]}
+    per_episode = {"per_episode": [{"success": False, "seed": 3, "max_reward": 0.25},
+                                   {"success": False, "seed": 4, "max_reward": 0.75}]}
+    assert average_max_reward(per_task, per_episode) == pytest.approx(0.625)
+    assert average_max_reward(per_task) == pytest.approx(0.75)
+    # an episode without a recorded reward makes the average undefined, not biased
+    assert average_max_reward(per_task, _eval_info([True])) is None
+    assert average_max_reward({"per_task": [{"task_id": 0, "metrics": {"successes": [True]}}]}) is None
+
+
 def test_the_cli_writes_the_summary_and_names_a_missing_input(tmp_path, capsys):
     checkpoint = tmp_path / "checkpoints" / "000040" / "pretrained_model"
     checkpoint.mkdir(parents=True)
@@ -66,6 +78,7 @@ def test_the_cli_writes_the_summary_and_names_a_missing_input(tmp_path, capsys):
     assert summary["success_rate"] == 0.9 and summary["n_episodes"] == 10 and summary["train_steps"] == 40
     assert summary["ci95"] == pytest.approx(list(wilson_interval(9, 10)))
     assert summary["heldout_npe"] == 0.25 and summary["wall_time_s"] == 12.5
+    assert summary["avg_max_reward"] is None  # these episodes carry no rewards
     assert summary["policy"] == "pacdp PAC-DP (kl_weight=1e-05, prior_rho=-4.5)"
     assert "success rate: 90.0% (9/10 episodes" in capsys.readouterr().out
 

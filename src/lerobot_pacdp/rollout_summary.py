@@ -73,6 +73,24 @@ def success_rate_of(*eval_infos: dict) -> SuccessRate:
     return SuccessRate(sum(outcomes), len(outcomes))
 
 
+def average_max_reward(*eval_infos: dict) -> float | None:
+    """LeRobot's `avg_max_reward` pooled over runs: the mean over episodes of each episode's best reward.
+
+    On PushT that reward is clip(coverage / 0.95, 0, 1), so this is Diffusion Policy's PushT score, which
+    shows how close failed pushes came; None when an episode has no reward recorded."""
+    rewards: list[float | None] = []
+    for eval_info in eval_infos:
+        if eval_info.get("per_episode"):
+            rewards += [row.get("max_reward") for row in eval_info["per_episode"]]
+        else:
+            for task in eval_info.get("per_task", []):
+                metrics = task.get("metrics", {})
+                rewards += metrics.get("max_rewards") or [None] * len(metrics.get("successes", []))
+    if not rewards or None in rewards:
+        return None
+    return sum(rewards) / len(rewards)
+
+
 @dataclass(frozen=True)
 class RunSummary:
     task: str
@@ -81,6 +99,7 @@ class RunSummary:
     n_episodes: int
     successes: int
     ci95: tuple[float, float]
+    avg_max_reward: float | None  # LeRobot's name; PushT's score
     heldout_npe: float | None
     heldout_npe_sem: float | None  # clustered by episode
     train_steps: int
@@ -128,7 +147,8 @@ def _heldout_npe(metrics: Path | None, checkpoint: Path) -> tuple[float | None, 
 def summarize_run(
     eval_infos: list[Path], checkpoint: Path, task: str, metrics: Path | None = None, wall_time_s: float | None = None
 ) -> RunSummary:
-    success = success_rate_of(*(_read_json(path, "eval_info.json lerobot-eval wrote") for path in eval_infos))
+    infos = [_read_json(path, "eval_info.json lerobot-eval wrote") for path in eval_infos]
+    success = success_rate_of(*infos)
     config = _read_json(checkpoint / "config.json", "checkpoint directory (its pretrained_model)")
     npe, npe_sem = _heldout_npe(metrics, checkpoint)
     return RunSummary(
@@ -138,6 +158,7 @@ def summarize_run(
         n_episodes=success.n_episodes,
         successes=success.successes,
         ci95=success.ci95,
+        avg_max_reward=average_max_reward(*infos),
         heldout_npe=npe,
         heldout_npe_sem=npe_sem,
         train_steps=_training_step(checkpoint),
@@ -164,6 +185,8 @@ def _summarize_main(cfg: SummarizeRunConfig) -> int:
     summary = summarize_run(cfg.eval_info, cfg.checkpoint, cfg.task, cfg.metrics, cfg.wall_time_s)
     write_text_atomic(cfg.output, json.dumps(asdict(summary), indent=2) + "\n")
     print(f"success rate: {SuccessRate(summary.successes, summary.n_episodes)}")
+    if summary.avg_max_reward is not None:
+        print(f"average best reward per episode (LeRobot's avg_max_reward; on PushT the score): {summary.avg_max_reward:.3f}")
     if summary.heldout_npe is not None:
         print(f"held-out NPE (EMA posterior mean): {summary.heldout_npe:.4f}")
     print(f"summary: {cfg.output}")
