@@ -5,7 +5,13 @@ import math
 
 import pytest
 
-from lerobot_pacdp.rollout_summary import SuccessRate, average_max_reward, main, success_rate_of, wilson_interval
+from lerobot_pacdp.rollout_summary import (
+    SuccessRate,
+    average_max_reward,
+    main,
+    success_rate_of,
+    wilson_interval,
+)
 
 
 def test_wilson_interval_matches_the_closed_form_by_hand():
