@@ -52,25 +52,44 @@ class SuccessRate:
                 f"95% interval {100 * low:.1f}-{100 * high:.1f}%)")
 
 
-def success_rate_of(*eval_infos: dict) -> SuccessRate:
-    """The success rate over the episodes of one or more `lerobot-eval` runs.
+@dataclass(frozen=True)
+class EpisodeOutcome:
+    """One rollout as `lerobot-eval` recorded it; seed and best reward are None where its layout has none."""
 
-    LeRobot 0.6.1 writes outcomes per task (`per_task[i].metrics.successes`; episode k of a run is seeded
-    `--seed + k`, so runs started at consecutive seed ranges never share a seed); single-env evaluations
-    write `per_episode` rows with their seeds, which must then be distinct across all the runs."""
-    outcomes, seeds = [], []
+    success: bool
+    seed: int | None
+    max_reward: float | None
+
+
+def episode_outcomes(*eval_infos: dict) -> list[EpisodeOutcome]:
+    """Every episode of one or more `lerobot-eval` runs, whichever of LeRobot's two layouts each run wrote.
+
+    LeRobot 0.6.1 writes outcomes per task (`per_task[i].metrics`: `successes`, `max_rewards`; episode k of a
+    run is seeded `--seed + k`, so runs started at consecutive seed ranges never share a seed); single-env
+    evaluations write `per_episode` rows with their seeds."""
+    episodes = []
     for eval_info in eval_infos:
         if eval_info.get("per_episode"):
-            outcomes += [bool(row["success"]) for row in eval_info["per_episode"]]
-            seeds += [row.get("seed") for row in eval_info["per_episode"]]
-        else:
-            tasks = eval_info.get("per_task", [])
-            outcomes += [bool(s) for task in tasks for s in task.get("metrics", {}).get("successes", [])]
-    if seeds and None not in seeds and len(set(seeds)) != len(seeds):
-        raise UserInputError(f"the {len(seeds)} episodes do not have distinct seeds; rerun lerobot-eval.")
-    if not outcomes:
+            episodes += [EpisodeOutcome(bool(row["success"]), row.get("seed"), row.get("max_reward"))
+                         for row in eval_info["per_episode"]]
+            continue
+        for task in eval_info.get("per_task", []):
+            metrics = task.get("metrics", {})
+            successes = metrics.get("successes", [])
+            rewards = metrics.get("max_rewards") or [None] * len(successes)
+            episodes += [EpisodeOutcome(bool(s), None, r) for s, r in zip(successes, rewards, strict=True)]
+    return episodes
+
+
+def success_rate_of(*eval_infos: dict) -> SuccessRate:
+    """The success rate over the episodes of one or more `lerobot-eval` runs; recorded seeds must be distinct."""
+    episodes = episode_outcomes(*eval_infos)
+    seeds = [episode.seed for episode in episodes if episode.seed is not None]
+    if len(set(seeds)) != len(seeds):
+        raise UserInputError(f"the {len(episodes)} episodes do not have distinct seeds; rerun lerobot-eval.")
+    if not episodes:
         raise UserInputError("the evaluation has no episode outcomes; pass the eval_info.json lerobot-eval wrote.")
-    return SuccessRate(sum(outcomes), len(outcomes))
+    return SuccessRate(sum(episode.success for episode in episodes), len(episodes))
 
 
 def average_max_reward(*eval_infos: dict) -> float | None:
@@ -78,14 +97,7 @@ def average_max_reward(*eval_infos: dict) -> float | None:
 
     On PushT that reward is clip(coverage / 0.95, 0, 1), so this is Diffusion Policy's PushT score, which
     shows how close failed pushes came; None when an episode has no reward recorded."""
-    rewards: list[float | None] = []
-    for eval_info in eval_infos:
-        if eval_info.get("per_episode"):
-            rewards += [row.get("max_reward") for row in eval_info["per_episode"]]
-        else:
-            for task in eval_info.get("per_task", []):
-                metrics = task.get("metrics", {})
-                rewards += metrics.get("max_rewards") or [None] * len(metrics.get("successes", []))
+    rewards = [episode.max_reward for episode in episode_outcomes(*eval_infos)]
     if not rewards or None in rewards:
         return None
     return sum(rewards) / len(rewards)
