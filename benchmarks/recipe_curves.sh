@@ -5,9 +5,10 @@
 # results/recipes/ holds the committed ones.
 #
 #   bash benchmarks/recipe_curves.sh lift  [OUT]    # 40 scripted Lift demos (as the main job), configs/robomimic/lift_cpu.json
-#   bash benchmarks/recipe_curves.sh pusht [OUT]    # PushT demos 0-39 from ../shared, configs/pusht/pacdp_cpu.json
+#   bash benchmarks/recipe_curves.sh pusht [OUT]    # all 206 PushT demos from ../shared, configs/pusht/pacdp_cpu.json
 #
-# Knobs: STEPS, SAVE_FREQ, LR, WARMUP (override the config's recipe), EVAL_EPISODES (default 20).
+# Knobs: STEPS, SAVE_FREQ, LR, WARMUP (override the config's recipe), EVAL_EPISODES (default 20), EPISODES (PushT's
+# demos, default 0-205).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 task="${1:?usage: $0 lift|pusht [OUT]}"
@@ -22,7 +23,7 @@ case "$task" in
     config=configs/robomimic/lift_cpu.json; data=(--dataset.root="$out/data")
     env=(--env.type=robomimic --env.task=lift) ;;
   pusht)
-    "$bin/pacdp-convert-pusht" --zarr=../shared/data/pusht/pusht_cchi_v7_replay.zarr --output_root="$out/data" --episodes=0-39 --overwrite=true
+    "$bin/pacdp-convert-pusht" --zarr=../shared/data/pusht/pusht_cchi_v7_replay.zarr --output_root="$out/data" --episodes="${EPISODES:-0-205}" --overwrite=true
     config=configs/pusht/pacdp_cpu.json; data=(--dataset.repo_id=local/pusht --dataset.root="$out/data")
     env=(--env.type=pusht --env.obs_type=environment_state_agent_pos) ;;
   *) echo "unknown task $task (lift | pusht)" >&2; exit 2 ;;

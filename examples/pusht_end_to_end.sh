@@ -14,7 +14,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 source="${1:?usage: $0 PATH/TO/pusht_cchi_v7_replay.zarr|lerobot/pusht_keypoints [OUTPUT_DIR]}"
 out="${2:-outputs/pusht_pacdp}"
-episodes="${EPISODES:-0-39}"
+episodes="${EPISODES:-0-205}"
 bin=.venv/bin
 [ -x "$bin/lerobot-train" ] || bin="$(dirname "$(command -v lerobot-train)")"
 

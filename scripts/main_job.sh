@@ -9,7 +9,7 @@
 # it goes), rolls out with lerobot-eval (Lift 100 episodes, PushT 50, distinct seeds, a few as videos), measures the
 # held-out denoising error (NPE) and writes OUT/summary.json: success rate with its 95% interval, NPE,
 # training steps, wall time. Knobs: STEPS, EVAL_EPISODES, OUT, and DEMOS (Lift: how many to record) or
-# EPISODES (PushT: which demos, e.g. 0-39).
+# EPISODES (PushT: which demos, default all 206: 0-205).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/bootstrap.sh

@@ -1,13 +1,13 @@
 """The study presets: every number a study uses is set here once (or read from the file that owns it).
 
-- `cpu`: PushT from Diffusion Policy's real demos (`--pusht_zarr`), the project's CPU U-Net
-  (configs/pusht/pacdp_cpu.json: down_dims 64/128/256, step embedding 64, the U-Net of the `cpu` speed
-  benchmark), 20 and 40 training demos, 20 held-out demos per seed, DP / BDP / PAC-DP, seeds 0 and 1,
-  1200 steps at batch 64, a checkpoint every 120 steps, two runs side by side. The learning rate is
-  raised to 1e-3 with a 50-step warm-up (the diffusion preset's 1e-4 / 500 steps is sized for 10^5-10^6
-  steps) so 1200 steps fit the data well and DP can overfit within the run. `long_pair=true` instead
-  trains DP, BDP and PAC-DP on 20 demos for 20k steps at batch 16 (~130 epochs of the 20 demos), in
-  chunks of `long_pair_chunk_steps`, resumable across sessions.
+- `cpu`: PushT from Diffusion Policy's real demos (`--pusht_zarr`), configs/pusht/pacdp_cpu.json with the
+  U-Net and lambda the committed results/study_cpu_pusht* ran with (down_dims 64/128/256, step embedding
+  64, the U-Net of the `cpu` speed benchmark; lambda 1e-4), 20 and 40 training demos, 20 held-out demos
+  per seed, DP / BDP / PAC-DP, seeds 0 and 1, 1200 steps at batch 64, a checkpoint every 120 steps, two
+  runs side by side. The learning rate is raised to 1e-3 with a 50-step warm-up (the diffusion preset's
+  1e-4 / 500 steps is sized for 10^5-10^6 steps) so 1200 steps fit the data well and DP can overfit within
+  the run. `long_pair=true` instead trains DP, BDP and PAC-DP on 20 demos for 20k steps at batch 16 (~130
+  epochs of the 20 demos), in chunks of `long_pair_chunk_steps`, resumable across sessions.
 - `paper`: paper Sec. IV on GPUs: PushT (configs/pusht/pacdp_paper.json: 10^6 steps, batch 256, paper
   U-Net) and the five robomimic tasks (`robomimic.train_configs.paper_config`, steps and lambda from
   `robomimic.tasks.TASKS`), the paper's held-out demos per seed and low-data training-demo counts
@@ -120,7 +120,8 @@ class Preset:
 
 def _cpu_preset() -> Preset:
     base = load_config_file("pusht/pacdp_cpu.json")
-    base["policy"].update(optimizer_lr=1e-3, scheduler_warmup_steps=50)
+    # The U-Net and lambda results/study_cpu_pusht* ran with (pacdp_cpu.json's before its all-demos recipe).
+    base["policy"].update(down_dims=[64, 128, 256], kl_weight=1e-4, optimizer_lr=1e-3, scheduler_warmup_steps=50)
     base.update(batch_size=64, num_workers=0, log_freq=50)
     pusht = TaskPreset(
         name="pusht",
