@@ -7,6 +7,7 @@ import json
 import pytest
 
 from lerobot_pacdp.rollout_summary import wilson_interval
+from lerobot_pacdp.speed_benchmark import PRESETS as SPEED_PRESETS
 from lerobot_pacdp.study.data import count_episodes, prepare_dataset
 from lerobot_pacdp.study.evaluation import success_checkpoints
 from lerobot_pacdp.study.evidence import final_rows, paired_comparisons, render_evidence, sign_flip_p_value
@@ -35,6 +36,14 @@ def test_the_cpu_v2_preset_plans_dp_bdp_and_pacdp_on_lift_can_and_pusht_with_thr
     assert lift.steps == 3000 and lift.train_config["policy"]["optimizer_lr"] == 6e-3  # lift_cpu.json's recipe
     can = preset.task("can")
     assert (can.steps, can.save_freq, can.train_config["policy"]["optimizer_lr"]) == (20_000, 2500, 3e-3)  # can_cpu.json's
+    pusht = preset.task("pusht")  # pusht/pacdp_cpu.json's all-demos recipe
+    assert (pusht.steps, pusht.save_freq, pusht.reference_kl_weight) == (40_000, 10_000, 1e-5)
+
+
+def test_the_cpu_study_keeps_the_unet_and_lambda_its_committed_results_ran_with():
+    policy = get_preset("cpu").task("pusht").train_config["policy"]
+    assert tuple(policy["down_dims"]) == SPEED_PRESETS["cpu"].down_dims  # 64/128/256, not pacdp_cpu.json's U-Net
+    assert policy["kl_weight"] == 1e-4 and policy["optimizer_lr"] == 1e-3
 
 
 @pytest.mark.slow
