@@ -88,6 +88,9 @@ def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfini
             previous = _read_json(directory / "metrics.json")
             group_rows, _ = run_sweep(sweep)
             _keep_other_runs_rows(directory / "metrics.json", previous, {str(run) for run in sweep.runs})
+            # runs of this seed published from another checkout (no checkpoint here) keep their stored rows
+            elsewhere = {s.name for s in runs if s not in ready and not step_dirs(s.train_dir(output_dir))}
+            group_rows += _stored_rows(directory, elsewhere)
         elif not any(step_dirs(s.train_dir(output_dir)) for s in runs) and (group_rows := _stored_rows(directory, set(by_name))):
             logger.info("metrics: %s/%s seed %d from %s (no checkpoint of these runs on disk)", group, task, seed,
                         directory / "metrics.json")  # fmt: skip
@@ -113,7 +116,7 @@ def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path, evalua
         by_run[row["run"]].append(row)
     wanted = [c for run_rows in by_run.values()
               for c in success_checkpoints(run_rows, preset.success_last_k, preset.success_every)]  # fmt: skip
-    todo = [c for c in wanted if c not in rates] if evaluate else []
+    todo = [c for c in wanted if c not in rates and Path(c).is_dir()] if evaluate else []
     for ckpt, rate in _rollouts(todo, env_dict, preset):
         rates[ckpt] = rate
         logger.info("success rate %s: %.3f over %d rollouts", ckpt, rate, preset.success_episodes)
