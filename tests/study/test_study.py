@@ -13,6 +13,7 @@ from lerobot_pacdp.study.executors import LocalExecutor
 from lerobot_pacdp.study.plan import RunSpec, plan_task, split_episodes, train_config
 from lerobot_pacdp.study.presets import Preset, StudyError, TaskPreset, get_preset, with_overrides
 from lerobot_pacdp.study.state import DONE_FILE, LOG_FILE, REQUEST_FILE, run_state, write_json_atomic
+from lerobot_pacdp.train_runs import final_checkpoint
 
 from fake_trainer import write_checkpoint
 
@@ -384,6 +385,46 @@ def test_a_later_call_over_other_demos_keeps_the_earlier_runs_metrics_rows_of_th
     assert stored_labels() == sorted(s.name for s in specs)
     evaluation.evaluate_runs(dataclasses.replace(preset, nll_steps=None), two, tmp_path)  # other settings
     assert stored_labels() == sorted(s.name for s in two)
+
+
+def test_a_seed_with_one_run_on_disk_keeps_the_stored_rows_and_success_rates_of_its_runs_trained_elsewhere(
+    tmp_path, monkeypatch
+):
+    monkeypatch.setattr(executors, "POLL_S", 0.05)
+    preset = dataclasses.replace(_tiny_preset(demos=(2,), seeds=(0,)), success_episodes=2, success_last_k=1)
+    here, *elsewhere = plan_task(preset.tasks[0], preset, num_episodes=8)
+    _write_requests([here], preset, tmp_path)
+    _local(preset, tmp_path).run([here])
+    directory = evaluation.metrics_dir(tmp_path, here.group, here.task, 0)
+    published = [{"label": s.name, "run": f"/other/{s.name}", "checkpoint": f"/other/{s.name}/006", "step": 6,
+                  "npe": 0.2} for s in elsewhere]  # fmt: skip
+    settings = {"nll_steps": preset.nll_steps}
+    write_json_atomic(directory / "metrics.json", {"settings": settings, "rows": published})
+    env = preset.tasks[0].train_config["env"]
+    rates = {row["checkpoint"]: 0.75 for row in published}
+    write_json_atomic(directory / "success.json", {"settings": {"episodes": 2, "seed": 0, "env": env}, "rates": rates})
+
+    def fake_sweep(cfg):  # as run_sweep: metrics.json gets the settings and the swept runs' rows only
+        rows = [{"label": label, "run": str(run), "checkpoint": str(final_checkpoint(run, 6)), "step": 6, "npe": 0.1}
+                for run, label in zip(cfg.runs, cfg.labels, strict=True)]  # fmt: skip
+        write_json_atomic(cfg.output_dir / "metrics.json", {"settings": {"nll_steps": cfg.nll_steps}, "rows": rows})
+        return rows, {}
+
+    rolled_out = []
+
+    def fake_rollouts(checkpoints, env_dict, preset):
+        rolled_out.extend(checkpoints)
+        return ((c, 0.5) for c in checkpoints)
+
+    monkeypatch.setattr(evaluation, "run_sweep", fake_sweep)
+    monkeypatch.setattr(evaluation, "_rollouts", fake_rollouts)
+    rows = evaluation.evaluate_runs(preset, [here, *elsewhere], tmp_path)
+    assert [(r["name"], r["npe"], r["success_rate"]) for r in rows] == [
+        (here.name, 0.1, 0.5), *((s.name, 0.2, 0.75) for s in elsewhere)
+    ]
+    assert rolled_out == [str(final_checkpoint(here.train_dir(tmp_path), 6))]  # not the runs trained elsewhere
+    stored = json.loads((directory / "metrics.json").read_text())["rows"]
+    assert sorted(row["label"] for row in stored) == sorted(s.name for s in [here, *elsewhere])
 
 
 def test_a_run_stopped_by_sigterm_is_paused_not_failed_and_resumes(tmp_path, monkeypatch):

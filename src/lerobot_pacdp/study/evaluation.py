@@ -3,9 +3,9 @@ demos, plus the success rate of each run's last checkpoints (the sweep's `succes
 rollout loop).
 
 Each (group, task, seed) keeps its rows in `<output_dir>/metrics/<group>/<task>/seed<k>/metrics.json` and
-its success rates in `success.json` beside it; rerunning reuses both. A group none of whose runs has a
-checkpoint on disk (a study whose checkpoints were deleted, or the committed `results/`) is reported from
-those files alone.
+its success rates in `success.json` beside it; rerunning reuses both. A run with no checkpoint on disk (its
+checkpoints deleted, or published from another checkout into the committed `results/`) is reported from
+those files alone, beside the runs of its seed that are swept here.
 """
 
 import json
@@ -59,6 +59,26 @@ def _keep_other_runs_rows(path: Path, previous: dict | None, swept_runs: set[str
         write_json_atomic(path, {"settings": current["settings"], "rows": current["rows"] + others})
 
 
+def _sweep_rows(preset: Preset, ready: list[RunSpec], directory: Path, output_dir: Path) -> list[dict]:
+    """`run_sweep` over the checkpoints of `ready` runs of one seed, on its held-out demos."""
+    logger.info("metrics: %s, %d runs on %d held-out demos", directory, len(ready), len(ready[0].heldout_episodes))
+    sweep = SweepConfig(
+        runs=[s.train_dir(output_dir) for s in ready],
+        labels=[s.name for s in ready],
+        output_dir=directory,
+        episodes=list(ready[0].heldout_episodes),
+        batch_size=preset.metrics_batch_size,
+        nll_steps=preset.nll_steps,
+        frame_stride=preset.frame_stride,
+        last_k=preset.last_k,
+        device=preset.device,
+    )
+    previous = _read_json(directory / "metrics.json")
+    swept, _ = run_sweep(sweep)
+    _keep_other_runs_rows(directory / "metrics.json", previous, {str(run) for run in sweep.runs})
+    return swept
+
+
 def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfinished: bool = False) -> list[dict]:
     """One row per checkpoint of every finished run (the sweep's columns plus the run's spec); with
     `unfinished`, also of runs stopped before their last step, up to their last checkpoint."""
@@ -70,42 +90,26 @@ def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfini
     for (group, task, seed), runs in groups.items():
         directory = metrics_dir(output_dir, group, task, seed)
         by_name = {s.name: s for s in runs}
-        ready = [s for s in runs if run_state(s, output_dir).status in wanted]
-        if ready:
-            logger.info("metrics: %s/%s seed %d, %d runs on %d held-out demos", group, task, seed, len(ready),
-                        len(ready[0].heldout_episodes))  # fmt: skip
-            sweep = SweepConfig(
-                runs=[s.train_dir(output_dir) for s in ready],
-                labels=[s.name for s in ready],
-                output_dir=directory,
-                episodes=list(ready[0].heldout_episodes),
-                batch_size=preset.metrics_batch_size,
-                nll_steps=preset.nll_steps,
-                frame_stride=preset.frame_stride,
-                last_k=preset.last_k,
-                device=preset.device,
-            )
-            previous = _read_json(directory / "metrics.json")
-            group_rows, _ = run_sweep(sweep)
-            _keep_other_runs_rows(directory / "metrics.json", previous, {str(run) for run in sweep.runs})
-            # runs of this seed published from another checkout (no checkpoint here) keep their stored rows
-            elsewhere = {s.name for s in runs if s not in ready and not step_dirs(s.train_dir(output_dir))}
-            group_rows += _stored_rows(directory, elsewhere)
-        elif not any(step_dirs(s.train_dir(output_dir)) for s in runs) and (group_rows := _stored_rows(directory, set(by_name))):
-            logger.info("metrics: %s/%s seed %d from %s (no checkpoint of these runs on disk)", group, task, seed,
-                        directory / "metrics.json")  # fmt: skip
-        else:
+        on_disk = [s for s in runs if step_dirs(s.train_dir(output_dir))]
+        ready = [s for s in on_disk if run_state(s, output_dir).status in wanted]
+        group_rows = _sweep_rows(preset, ready, directory, output_dir) if ready else []
+        # runs with no checkpoint here (published from another checkout, or deleted) keep their stored rows
+        elsewhere = {s.name for s in runs if s not in on_disk}
+        if stored := _stored_rows(directory, elsewhere):
+            logger.info("metrics: %d rows of runs with no checkpoint on disk from %s", len(stored), directory)
+        group_rows += stored
+        if not group_rows:
             continue
         group_rows = [row | _spec_fields(by_name[row["label"]]) for row in group_rows]
         if preset.success_episodes > 0:
-            add_success_rates(preset, group_rows, directory / "success.json", evaluate=bool(ready))
+            add_success_rates(preset, group_rows, directory / "success.json")
         rows += group_rows
     return rows
 
 
-def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path, evaluate: bool = True) -> None:
-    """Success rate of each run's `success_checkpoints`, cached in `cache_file` as each lands; with `evaluate`
-    false only cached rates are used (the checkpoints are not on disk)."""
+def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path) -> None:
+    """Success rate of each run's `success_checkpoints`, cached in `cache_file` as each lands; checkpoints not
+    on disk (runs published from another checkout) get only their cached rates."""
     task = preset.task(rows[0]["task"])
     env_dict = task.train_config["env"]
     settings = {"episodes": preset.success_episodes, "seed": 0, "env": env_dict}
@@ -116,7 +120,7 @@ def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path, evalua
         by_run[row["run"]].append(row)
     wanted = [c for run_rows in by_run.values()
               for c in success_checkpoints(run_rows, preset.success_last_k, preset.success_every)]  # fmt: skip
-    todo = [c for c in wanted if c not in rates and Path(c).is_dir()] if evaluate else []
+    todo = [c for c in wanted if c not in rates and Path(c).is_dir()]
     for ckpt, rate in _rollouts(todo, env_dict, preset):
         rates[ckpt] = rate
         logger.info("success rate %s: %.3f over %d rollouts", ckpt, rate, preset.success_episodes)
