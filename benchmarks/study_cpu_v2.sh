@@ -31,17 +31,14 @@ if [ "$task" != publish ]; then
 fi
 # Tables over every piece trained so far (metrics and success rates are cached per task and seed; a piece
 # trained with --metrics=false gets them here). Pieces already published from another checkout, whose runs
-# are not under $out, keep their committed rows: they are copied into the cache where it has none.
+# are not under $out, keep their committed rows: --published_metrics merges them into the cache, run by run.
 dest=results/study_cpu_v2$suffix
-if [ -d "$dest/metrics" ]; then
-  (cd "$dest" && find metrics -type f) | while read -r f; do
-    [ -e "$out/$f" ] || { mkdir -p "$out/$(dirname "$f")" && cp "$dest/$f" "$out/$f"; }
-  done
-fi
-tasks=$( { find "$out/runs" "$out/metrics/main" -mindepth 1 -maxdepth 1 -type d -printf '%f\n' 2>/dev/null || true; } \
-        | sort -u | paste -sd, -)
+published=()
+[ -d "$dest/metrics" ] && published=(--published_metrics="$dest/metrics")
+tasks=$( { find "$out/runs" "$out/metrics/main" "$dest/metrics/main" -mindepth 1 -maxdepth 1 -type d -printf '%f\n' \
+           2>/dev/null || true; } | sort -u | paste -sd, -)
 [ -n "$tasks" ] || { echo "nothing finished yet under $out" >&2; exit 1; }
-"${study[@]}" --tasks="[$tasks]" --train=false
+"${study[@]}" --tasks="[$tasks]" --train=false "${published[@]}"
 rm -rf "$dest.tmp" && mkdir -p "$dest.tmp"
 cp -r "$out/results/." "$dest.tmp/"
 (cd "$out" && find metrics/main -name metrics.json -o -name success.json) | while read -r f; do

@@ -427,6 +427,35 @@ def test_a_seed_with_one_run_on_disk_keeps_the_stored_rows_and_success_rates_of_
     assert sorted(row["label"] for row in stored) == sorted(s.name for s in [here, *elsewhere])
 
 
+def test_adopting_a_published_study_adds_the_rows_and_rates_of_runs_the_cache_lacks_and_keeps_its_own(tmp_path):
+    published, out = tmp_path / "results" / "metrics", tmp_path / "out"
+    seed = Path("main") / "lift" / "seed1"
+
+    def write(path: Path, content: dict) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(content))
+
+    def rows(**npe_by_label: float) -> list[dict]:
+        return [{"label": label, "step": 6, "npe": npe} for label, npe in npe_by_label.items()]
+
+    write(out / "metrics" / seed / "metrics.json", {"settings": {"nll_steps": 4}, "rows": rows(d040=0.1)})
+    write(published / seed / "metrics.json", {"settings": {"nll_steps": 4}, "rows": rows(d040=0.9, d020=0.2)})
+    write(out / "metrics" / seed / "success.json", {"settings": {"episodes": 50}, "rates": {"/a/6": 0.5}})
+    write(published / seed / "success.json", {"settings": {"episodes": 50}, "rates": {"/a/6": 0.9, "/b/6": 0.75}})
+    write(published / "main" / "lift" / "seed2" / "metrics.json", {"settings": {}, "rows": rows(d020=0.3)})
+    write(out / "metrics" / "main" / "lift" / "seed0" / "metrics.json", {"settings": {"nll_steps": 4}, "rows": []})
+    write(published / "main" / "lift" / "seed0" / "metrics.json", {"settings": {"nll_steps": 100}, "rows": rows(d020=0.4)})
+    evaluation.adopt_published(published, out)
+
+    def read(relative: str) -> dict:
+        return json.loads((out / "metrics" / "main" / "lift" / relative).read_text())
+
+    assert read("seed1/metrics.json")["rows"] == rows(d040=0.1, d020=0.2)  # its own d040 row wins
+    assert read("seed1/success.json")["rates"] == {"/a/6": 0.5, "/b/6": 0.75}
+    assert read("seed2/metrics.json")["rows"] == rows(d020=0.3)  # a seed it had not got: copied whole
+    assert read("seed0/metrics.json")["rows"] == []  # other settings: not mixed in
+
+
 def test_a_run_stopped_by_sigterm_is_paused_not_failed_and_resumes(tmp_path, monkeypatch):
     preset, spec = _one_fake_run(tmp_path, monkeypatch, FAKE_TRAINER_KILL_AT="2")
     outcome = _local(preset, tmp_path).run([spec])

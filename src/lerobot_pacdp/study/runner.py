@@ -20,7 +20,7 @@ from pathlib import Path
 
 from lerobot_pacdp.cli_errors import run_draccus_cli
 from lerobot_pacdp.study.data import count_episodes, dataset_root, prepare_dataset
-from lerobot_pacdp.study.evaluation import evaluate_runs
+from lerobot_pacdp.study.evaluation import adopt_published, evaluate_runs
 from lerobot_pacdp.study.executors import LocalExecutor, Outcome, default_trainer
 from lerobot_pacdp.study.plan import RunSpec, plan_study, train_config
 from lerobot_pacdp.study.presets import Preset, StudyError, get_preset, long_pair_preset, with_overrides
@@ -59,6 +59,9 @@ class StudyConfig:
     train: bool = True  # false: only (re)compute metrics and tables of finished runs
     metrics: bool = True  # false: train only
     report_unfinished: bool = False  # also report runs stopped before their last step, up to their last checkpoint
+    # a published study's metrics/ (e.g. results/study_cpu_v2/metrics): its runs' rows and success rates join
+    # the tables where output_dir has none of their own (seeds trained in other checkouts)
+    published_metrics: Path | None = None
     success_episodes: int | None = None  # rollouts per evaluated checkpoint (0: no success rate)
     success_every: int | None = None  # also roll out checkpoints at multiples of this step (0: final only)
     perf: bool = False  # also (re)measure the performance table (lerobot_pacdp.speed_benchmark)
@@ -140,6 +143,8 @@ def run_study(cfg: StudyConfig) -> int:
                     "--dry_run=true; their metrics and tables once they are done (on a GPU node): the same "
                     "command with --train=false (--report_unfinished=true for those still running).")  # fmt: skip
     elif cfg.metrics:
+        if cfg.published_metrics is not None:
+            adopt_published(cfg.published_metrics, output_dir)
         rows = evaluate_runs(preset, specs, output_dir, cfg.report_unfinished)
         report(preset, specs, rows, output_dir, long_pair=cfg.long_pair, perf=cfg.perf)
     return 1 if outcome.failed else 0
