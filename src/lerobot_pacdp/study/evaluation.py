@@ -47,33 +47,27 @@ def _stored_rows(directory: Path, names: set[str]) -> list[dict]:
     return [row for row in stored["rows"] if row["label"] in names] if stored else []
 
 
-def _keep_other_runs_rows(path: Path, previous: dict | None, swept_labels: set[str]) -> None:
-    """`run_sweep` rewrites metrics.json with the swept runs' rows only; put back the rows of this seed's other
-    runs (a study called with a subset of its demos or methods) when they were computed with the same settings,
-    so that a later call over every run finds them cached."""
-    if previous is None:
+def _merge_stored(target: Path, other: dict | None) -> None:
+    """Add to `target` (a metrics.json or success.json) the rows or success rates of the runs it lacks from
+    `other`, where both were computed with the same settings; a missing `target` gets `other` whole. Keeps the
+    cached results of runs a call did not sweep (a subset of demos or methods, seeds published elsewhere)."""
+    if other is None:
         return
-    current = json.loads(path.read_text())
-    others = [row for row in previous["rows"] if row["label"] not in swept_labels]
-    if others and previous.get("settings") == current["settings"]:
-        write_json_atomic(path, {"settings": current["settings"], "rows": current["rows"] + others})
+    ours = _read_json(target)
+    if ours is None:
+        write_json_atomic(target, other)
+    elif ours.get("settings") == other.get("settings") and "rows" in ours:
+        labels = {row["label"] for row in ours["rows"]}
+        write_json_atomic(target, ours | {"rows": ours["rows"] + [r for r in other["rows"] if r["label"] not in labels]})
+    elif ours.get("settings") == other.get("settings") and "rates" in ours:
+        write_json_atomic(target, ours | {"rates": other["rates"] | ours["rates"]})
 
 
 def adopt_published(published: Path, output_dir: Path) -> None:
-    """Merge a published study's `metrics/` (the committed `results/.../metrics`) into `output_dir`'s cache: the
-    rows and success rates of runs the cache lacks, where both were computed with the same settings (a file the
-    cache has not got is copied whole). Lets one checkout publish tables over seeds trained in others."""
+    """Merge a published study's `metrics/` (the committed `results/.../metrics`) into `output_dir`'s cache, run
+    by run (`_merge_stored`): lets one checkout publish tables over seeds trained in others."""
     for source in sorted(published.rglob("*.json")):
-        target = output_dir / "metrics" / source.relative_to(published)
-        theirs, ours = _read_json(source), _read_json(target)
-        if ours is None:
-            write_json_atomic(target, theirs)
-        elif ours.get("settings") == theirs.get("settings") and "rows" in ours:
-            labels = {row["label"] for row in ours["rows"]}
-            rows = ours["rows"] + [row for row in theirs["rows"] if row["label"] not in labels]
-            write_json_atomic(target, ours | {"rows": rows})
-        elif ours.get("settings") == theirs.get("settings") and "rates" in ours:
-            write_json_atomic(target, ours | {"rates": theirs["rates"] | ours["rates"]})
+        _merge_stored(output_dir / "metrics" / source.relative_to(published), _read_json(source))
 
 
 def _sweep_rows(preset: Preset, ready: list[RunSpec], directory: Path, output_dir: Path) -> list[dict]:
@@ -91,8 +85,8 @@ def _sweep_rows(preset: Preset, ready: list[RunSpec], directory: Path, output_di
         device=preset.device,
     )
     previous = _read_json(directory / "metrics.json")
-    swept, _ = run_sweep(sweep)
-    _keep_other_runs_rows(directory / "metrics.json", previous, set(sweep.labels))
+    swept, _ = run_sweep(sweep)  # rewrites metrics.json with the swept runs' rows only
+    _merge_stored(directory / "metrics.json", previous)
     return swept
 
 
