@@ -102,6 +102,7 @@ def test_paired_comparison_matches_runs_by_demos_and_seed():
     assert npe.mean_difference == pytest.approx((0.05 - 0.02 - 0.10) / 3)
     markdown = render_evidence(summary, paired_comparisons(summary))
     assert "| lift | 20 | DP | 0.700 ± 0.100 (n=3) |" in markdown and "s0: 8/10" in markdown
+    assert "| lift | 40 | PAC-DP | 0.400 (n=1) | 0.3000 (n=1) |" in markdown  # one seed: no spread to show
     # the valid bound, then the paper-compatible estimate, before the per-seed counts
     assert "| 1.000 ± 0.000 (n=3) | 0.500 ± 0.000 (n=3) | s0: 8/10, s1: 6/10, s2: 7/10 |" in markdown
 

@@ -232,6 +232,14 @@ def test_tables_from_known_rows():
     assert "| pusht | 20 | 0.310 ± 0.014 |" in markdown and "(0.0001, -4.5)" in markdown
 
 
+def test_a_table_cell_of_one_seed_shows_its_value_without_a_spread():
+    per_run = [{"task": "pusht", "demos": 20, "seed": 0, "method": "DP", "kl_weight": None, "prior_rho": None,
+                "npe": 0.25, "nll_bound": None, "success_rate": 0.08}]  # fmt: skip
+    cells = tables.build_tables(tables.seed_statistics(per_run), {"pusht": (1e-5, -4.5)})
+    markdown = tables.render_markdown(cells, last_k=1)
+    assert "| pusht | 20 | 0.250 |" in markdown and "0.250 ± 0.000" not in markdown
+
+
 def test_per_run_values_use_the_last_k_checkpoints():
     rows = [{"run": "r", "label": "x", "step": s, "npe": v, "nll_bound": None, "success_rate": None, "task": "pusht",
              "demos": 20, "seed": 0, "method": "DP", "kl_weight": None, "prior_rho": None, "name": "r", "group": "main"}

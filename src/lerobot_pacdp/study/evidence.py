@@ -96,10 +96,12 @@ def paired_comparisons(summary: list[dict]) -> list[PairedComparison]:
 
 
 def _cell(values: list[float], digits: int) -> str:
+    """Mean ± std over seeds; a single seed has no spread to show, so its cell is the value alone."""
     if not values:
         return "--"
-    std = statistics.stdev(values) if len(values) > 1 else 0.0
-    return f"{statistics.fmean(values):.{digits}f} ± {std:.{digits}f} (n={len(values)})"
+    if len(values) == 1:
+        return f"{values[0]:.{digits}f} (n=1)"
+    return f"{statistics.fmean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f} (n={len(values)})"
 
 
 def render_evidence(summary: list[dict], comparisons: list[PairedComparison]) -> str:

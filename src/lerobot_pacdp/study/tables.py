@@ -129,13 +129,16 @@ def build_tables(stats: dict, references: dict[str, tuple[float, float]]) -> lis
 
 
 def _fmt(cell: dict | None, digits: int = 3) -> str:
-    return "--" if cell is None else f"{cell['mean']:.{digits}f} ± {cell['std']:.{digits}f}"
+    if cell is None:
+        return "--"
+    spread = f" ± {cell['std']:.{digits}f}" if cell["n"] > 1 else ""  # one seed (or grid point): no spread
+    return f"{cell['mean']:.{digits}f}{spread}"
 
 
 def render_markdown(cells: list[dict], last_k: int) -> str:
     index = {(c["table"], c["task"], c["demos"], c["column"], c["metric"]): c for c in cells}
     tasks = list(dict.fromkeys(c["task"] for c in cells))
-    out = [f"Per run: mean over its last {last_k} checkpoints; cells: mean ± std over seeds (n = seeds) unless noted.", ""]
+    out = [f"Per run: mean over its last {last_k} checkpoints; cells: mean ± std over seeds (n = seeds; the value alone where n = 1) unless noted.", ""]
     out += ["## Table I: generalization at the largest demo count (reference lambda, rho)", ""]
     header = ["Task", "demos"] + [f"{METRICS[m]} {c}" for m in METRICS for c in ("DP", "BDP", "PAC-DP")]
     out += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
