@@ -69,12 +69,14 @@ def test_the_committed_tables_regenerate_from_their_metrics_files(tmp_path, push
         ("study_cpu_v2_steps12000", ["--steps=12000", "--save_freq=1000", "--success_every=4000"]),
     ],
 )
-def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_files(tmp_path, study, flags):
+def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_files(tmp_path, request, study, flags):
     """results/study_cpu_v2* commit each (task, seed)'s metrics.json and success.json as the study keeps them;
-    `--published_metrics` brings them into an empty output dir."""
+    `--published_metrics` brings them into an empty output dir (PushT's held-out split needs its demos)."""
     committed = RESULTS / study
-    tasks = ",".join(sorted(p.name for p in (committed / "metrics" / "main").iterdir()))
-    argv = ["--preset=cpu_v2", f"--output_dir={tmp_path}", f"--tasks=[{tasks}]", "--train=false",
+    tasks = sorted(p.name for p in (committed / "metrics" / "main").iterdir())
+    if "pusht" in tasks:
+        flags = [*flags, f"--pusht_zarr={request.getfixturevalue('pusht_zarr')}"]
+    argv = ["--preset=cpu_v2", f"--output_dir={tmp_path}", f"--tasks=[{','.join(tasks)}]", "--train=false",
             f"--published_metrics={committed / 'metrics'}", *flags]  # fmt: skip
     assert runner.main(argv) == 0
     for name in ("summary.json", "paired.json", "evidence.md", "runs.csv", "dynamics.csv", "tables.csv"):

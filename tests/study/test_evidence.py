@@ -75,13 +75,14 @@ def _row(method, seed, step, sr, npe, demos=20, kl=None, rho=None):
 
 
 def test_final_rows_keep_each_runs_last_checkpoint_at_the_reference_point_with_its_interval():
-    rows = [_row("DP", 0, 500, None, 0.3), _row("DP", 0, 1000, 0.9, 0.2), _row("PAC-DP", 0, 1000, 0.5, 0.25),
+    rows = [_row("DP", 0, 500, None, 0.3), _row("DP", 0, 1000, 0.9, 0.2) | {"avg_max_reward": 0.95}, _row("PAC-DP", 0, 1000, 0.5, 0.25),
             _row("PAC-DP", 0, 1000, 0.1, 0.1, rho=-4.0), _row("BDP", 0, 1000, 0.7, 0.22)]  # fmt: skip
     summary = final_rows(rows, n_episodes=50, references=REFERENCES)
     assert [(r["method"], r["step"]) for r in summary] == [("DP", 1000), ("BDP", 1000), ("PAC-DP", 1000)]
     dp = summary[0]
     assert dp["successes"] == 45 and dp["n_episodes"] == 50 and dp["heldout_npe"] == 0.2
     assert dp["ci95"] == pytest.approx(list(wilson_interval(45, 50)))
+    assert dp["avg_max_reward"] == 0.95 and summary[2]["avg_max_reward"] is None  # rolled out before scores
     assert summary[2]["prior_rho"] == -4.5  # the rho -4.0 run is off the reference point
 
 
@@ -102,7 +103,7 @@ def test_paired_comparison_matches_runs_by_demos_and_seed():
     assert npe.mean_difference == pytest.approx((0.05 - 0.02 - 0.10) / 3)
     markdown = render_evidence(summary, paired_comparisons(summary))
     assert "| lift | 20 | DP | 0.700 ± 0.100 (n=3) |" in markdown and "s0: 8/10" in markdown
-    assert "| lift | 40 | PAC-DP | 0.400 (n=1) | 0.3000 (n=1) |" in markdown  # one seed: no spread to show
+    assert "| lift | 40 | PAC-DP | 0.400 (n=1) | -- | 0.3000 (n=1) |" in markdown  # one seed; no score recorded
     # the valid bound, then the paper-compatible estimate, before the per-seed counts
     assert "| 1.000 ± 0.000 (n=3) | 0.500 ± 0.000 (n=3) | s0: 8/10, s1: 6/10, s2: 7/10 |" in markdown
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from lerobot_pacdp.metrics.sweep import RolloutOutcome
 from lerobot_pacdp.study import evaluation, executors, runner, tables
 from lerobot_pacdp.study.executors import LocalExecutor
 from lerobot_pacdp.study.plan import RunSpec, plan_task, split_episodes, train_config
@@ -422,15 +423,17 @@ def test_a_seed_with_one_run_on_disk_keeps_the_stored_rows_and_success_rates_of_
 
     def fake_rollouts(checkpoints, env_dict, preset):
         rolled_out.extend(checkpoints)
-        return ((c, 0.5) for c in checkpoints)
+        return ((c, RolloutOutcome(success_rate=0.5, avg_max_reward=0.8)) for c in checkpoints)
 
     monkeypatch.setattr(evaluation, "run_sweep", fake_sweep)
     monkeypatch.setattr(evaluation, "_rollouts", fake_rollouts)
     rows = evaluation.evaluate_runs(preset, [here, *elsewhere], tmp_path)
-    assert [(r["name"], r["npe"], r["success_rate"]) for r in rows] == [
-        (here.name, 0.1, 0.5), *((s.name, 0.2, 0.75) for s in elsewhere)
+    assert [(r["name"], r["npe"], r["success_rate"], r["avg_max_reward"]) for r in rows] == [
+        (here.name, 0.1, 0.5, 0.8), *((s.name, 0.2, 0.75, None) for s in elsewhere)  # published without scores
     ]
-    assert rolled_out == [str(final_checkpoint(here.train_dir(tmp_path), 6))]  # not the runs trained elsewhere
+    here_checkpoint = str(final_checkpoint(here.train_dir(tmp_path), 6))
+    assert rolled_out == [here_checkpoint]  # not the runs trained elsewhere
+    assert json.loads((directory / "success.json").read_text())["scores"] == {here_checkpoint: 0.8}
     stored = json.loads((directory / "metrics.json").read_text())["rows"]
     assert sorted(row["label"] for row in stored) == sorted(s.name for s in [here, *elsewhere])
 
@@ -449,7 +452,8 @@ def test_adopting_a_published_study_adds_the_rows_and_rates_of_runs_the_cache_la
     write(out / "metrics" / seed / "metrics.json", {"settings": {"nll_steps": 4}, "rows": rows(d040=0.1)})
     write(published / seed / "metrics.json", {"settings": {"nll_steps": 4}, "rows": rows(d040=0.9, d020=0.2)})
     write(out / "metrics" / seed / "success.json", {"settings": {"episodes": 50}, "rates": {"/a/6": 0.5}})
-    write(published / seed / "success.json", {"settings": {"episodes": 50}, "rates": {"/a/6": 0.9, "/b/6": 0.75}})
+    write(published / seed / "success.json",
+          {"settings": {"episodes": 50}, "rates": {"/a/6": 0.9, "/b/6": 0.75}, "scores": {"/b/6": 0.8}})  # fmt: skip
     write(published / "main" / "lift" / "seed2" / "metrics.json", {"settings": {}, "rows": rows(d020=0.3)})
     write(out / "metrics" / "main" / "lift" / "seed0" / "metrics.json", {"settings": {"nll_steps": 4}, "rows": []})
     write(published / "main" / "lift" / "seed0" / "metrics.json", {"settings": {"nll_steps": 100}, "rows": rows(d020=0.4)})
@@ -460,6 +464,7 @@ def test_adopting_a_published_study_adds_the_rows_and_rates_of_runs_the_cache_la
 
     assert read("seed1/metrics.json")["rows"] == rows(d040=0.1, d020=0.2)  # its own d040 row wins
     assert read("seed1/success.json")["rates"] == {"/a/6": 0.5, "/b/6": 0.75}
+    assert read("seed1/success.json")["scores"] == {"/b/6": 0.8}
     assert read("seed2/metrics.json")["rows"] == rows(d020=0.3)  # a seed it had not got: copied whole
     assert read("seed0/metrics.json")["rows"] == []  # other settings: not mixed in
 

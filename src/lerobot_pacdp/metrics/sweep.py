@@ -142,9 +142,25 @@ def method_label(loaded: LoadedPolicy) -> str:
     return "BDP" if config.kl_weight == 0 else "PAC-DP"
 
 
+@dataclass(frozen=True)
+class RolloutOutcome:
+    """What LeRobot's evaluation loop measures over one checkpoint's rollouts."""
+
+    success_rate: float  # 0-1
+    avg_max_reward: float  # mean of each episode's best reward; on PushT, Diffusion Policy's coverage score
+
+
 @torch.no_grad()
 def success_rate(loaded: LoadedPolicy, env_cfg: EnvConfig, n_envs: int, n_episodes: int, seed: int) -> float:
-    """Fraction of successful rollouts through LeRobot's own evaluation loop (which closes the envs it is
+    """Fraction of successful rollouts (`rollout_outcome`)."""
+    return rollout_outcome(loaded, env_cfg, n_envs, n_episodes, seed).success_rate
+
+
+@torch.no_grad()
+def rollout_outcome(
+    loaded: LoadedPolicy, env_cfg: EnvConfig, n_envs: int, n_episodes: int, seed: int
+) -> RolloutOutcome:
+    """Success rate and score of rollouts through LeRobot's own evaluation loop (which closes the envs it is
     given, so each checkpoint gets fresh ones)."""
     from lerobot.envs.factory import make_env, make_env_pre_post_processors
     from lerobot.scripts.lerobot_eval import eval_policy_all
@@ -162,7 +178,7 @@ def success_rate(loaded: LoadedPolicy, env_cfg: EnvConfig, n_envs: int, n_episod
         n_episodes=n_episodes,
         start_seed=seed,
     )
-    return info["overall"]["pc_success"] / 100.0
+    return RolloutOutcome(info["overall"]["pc_success"] / 100.0, float(info["overall"]["avg_max_reward"]))
 
 
 def _finite(values: list[float]) -> list[float]:

@@ -1,9 +1,9 @@
 """The metrics of a study's runs: `lerobot_pacdp.metrics.sweep` on every checkpoint, on each seed's held-out
-demos, plus the success rate of each run's last checkpoints (the sweep's `success_rate`, LeRobot's own
-rollout loop).
+demos, plus the success rate and score (`avg_max_reward`) of each run's last checkpoints (the sweep's
+`rollout_outcome`, LeRobot's own rollout loop).
 
 Each (group, task, seed) keeps its rows in `<output_dir>/metrics/<group>/<task>/seed<k>/metrics.json` and
-its success rates in `success.json` beside it; rerunning reuses both. A run with no checkpoint on disk (its
+its success rates and scores in `success.json` beside it; rerunning reuses both. A run with no checkpoint on disk (its
 checkpoints deleted, or published from another checkout into the committed `results/`) is reported from
 those files alone, beside the runs of its seed that are swept here.
 """
@@ -19,7 +19,7 @@ from pathlib import Path
 import draccus
 
 from lerobot_pacdp.metrics.checkpoints import load_policy
-from lerobot_pacdp.metrics.sweep import SweepConfig, run_sweep, success_rate
+from lerobot_pacdp.metrics.sweep import RolloutOutcome, SweepConfig, rollout_outcome, run_sweep
 from lerobot_pacdp.study.plan import RunSpec
 from lerobot_pacdp.study.presets import Preset
 from lerobot_pacdp.study.state import run_state, write_json_atomic
@@ -60,7 +60,8 @@ def _merge_stored(target: Path, other: dict | None) -> None:
         labels = {row["label"] for row in ours["rows"]}
         write_json_atomic(target, ours | {"rows": ours["rows"] + [r for r in other["rows"] if r["label"] not in labels]})
     elif ours.get("settings") == other.get("settings") and "rates" in ours:
-        write_json_atomic(target, ours | {"rates": other["rates"] | ours["rates"]})
+        merged = {key: other.get(key, {}) | ours.get(key, {}) for key in ("rates", "scores")}
+        write_json_atomic(target, ours | merged)
 
 
 def adopt_published(published: Path, output_dir: Path) -> None:
@@ -119,26 +120,30 @@ def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfini
 
 
 def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path) -> None:
-    """Success rate of each run's `success_checkpoints`, cached in `cache_file` as each lands; checkpoints not
-    on disk (runs published from another checkout) get only their cached rates."""
+    """Success rate and score (`avg_max_reward`) of each run's `success_checkpoints`, cached in `cache_file` as
+    each lands; checkpoints not on disk (runs published from another checkout) get only what is cached, and a
+    rate cached before scores were kept keeps no score (remove it from the cache to roll it out again)."""
     task = preset.task(rows[0]["task"])
     env_dict = task.train_config["env"]
     settings = {"episodes": preset.success_episodes, "seed": 0, "env": env_dict}
     cache = json.loads(cache_file.read_text()) if cache_file.is_file() else {}
-    rates = cache.get("rates", {}) if cache.get("settings") == settings else {}
+    same = cache.get("settings") == settings
+    rates, scores = (cache.get("rates", {}), cache.get("scores", {})) if same else ({}, {})
     by_run: dict[str, list[dict]] = defaultdict(list)
     for row in rows:
         by_run[row["run"]].append(row)
     wanted = [c for run_rows in by_run.values()
               for c in success_checkpoints(run_rows, preset.success_last_k, preset.success_every)]  # fmt: skip
     todo = [c for c in wanted if c not in rates and Path(c).is_dir()]
-    for ckpt, rate in _rollouts(todo, env_dict, preset):
-        rates[ckpt] = rate
-        logger.info("success rate %s: %.3f over %d rollouts", ckpt, rate, preset.success_episodes)
-        write_json_atomic(cache_file, {"settings": settings, "rates": rates})
+    for ckpt, outcome in _rollouts(todo, env_dict, preset):
+        rates[ckpt], scores[ckpt] = outcome.success_rate, outcome.avg_max_reward
+        logger.info("success rate %s: %.3f (score %.3f) over %d rollouts", ckpt, outcome.success_rate,
+                    outcome.avg_max_reward, preset.success_episodes)  # fmt: skip
+        write_json_atomic(cache_file, {"settings": settings, "rates": rates, "scores": scores})
     for row in rows:
         if row["checkpoint"] in rates:
             row["success_rate"] = rates[row["checkpoint"]]
+            row["avg_max_reward"] = scores.get(row["checkpoint"])
 
 
 def success_checkpoints(run_rows: list[dict], last_k: int, every: int = 0) -> list[str]:
@@ -149,13 +154,13 @@ def success_checkpoints(run_rows: list[dict], last_k: int, every: int = 0) -> li
     return [r["checkpoint"] for r in ordered if r["checkpoint"] in last or (every > 0 and r["step"] % every == 0)]
 
 
-def checkpoint_success_rate(checkpoint: str, env_dict: dict, episodes: int, device: str | None) -> float:
-    """`success_rate` of one checkpoint over `episodes` rollouts (seeds 0..episodes-1) in fresh envs (LeRobot's
-    loop closes the envs it is given)."""
+def checkpoint_rollouts(checkpoint: str, env_dict: dict, episodes: int, device: str | None) -> RolloutOutcome:
+    """`rollout_outcome` of one checkpoint over `episodes` rollouts (seeds 0..episodes-1) in fresh envs
+    (LeRobot's loop closes the envs it is given)."""
     from lerobot.envs.configs import EnvConfig
 
     env_cfg = draccus.decode(EnvConfig, env_dict)
-    return success_rate(load_policy(checkpoint, device), env_cfg, min(10, episodes), episodes, seed=0)
+    return rollout_outcome(load_policy(checkpoint, device), env_cfg, min(10, episodes), episodes, seed=0)
 
 
 def _one_thread_worker() -> None:
@@ -164,17 +169,17 @@ def _one_thread_worker() -> None:
     torch.set_num_threads(1)
 
 
-def _rollouts(checkpoints: list[str], env_dict: dict, preset: Preset) -> Iterator[tuple[str, float]]:
-    """(checkpoint, success rate) as each finishes: `preset.jobs` checkpoints side by side (one thread each, in
+def _rollouts(checkpoints: list[str], env_dict: dict, preset: Preset) -> Iterator[tuple[str, RolloutOutcome]]:
+    """(checkpoint, its rollouts' outcome) as each finishes: `preset.jobs` checkpoints side by side (one thread each, in
     spawned processes; rollouts are most of a CPU study's metrics time), or one after another."""
     episodes = preset.success_episodes
     if preset.jobs < 2 or len(checkpoints) < 2:
         for ckpt in checkpoints:
-            yield ckpt, checkpoint_success_rate(ckpt, env_dict, episodes, preset.device)
+            yield ckpt, checkpoint_rollouts(ckpt, env_dict, episodes, preset.device)
         return
     workers = min(preset.jobs, len(checkpoints))
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                              initializer=_one_thread_worker) as pool:  # fmt: skip
-        futures = {pool.submit(checkpoint_success_rate, c, env_dict, episodes, preset.device): c for c in checkpoints}
+        futures = {pool.submit(checkpoint_rollouts, c, env_dict, episodes, preset.device): c for c in checkpoints}
         for future in as_completed(futures):
             yield futures[future], future.result()

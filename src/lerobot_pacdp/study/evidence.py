@@ -1,7 +1,8 @@
 """The evidence table of a study: one row per run's final checkpoint, and paired PAC-DP vs DP tests.
 
 `summary.json` is the list of rows {task, demos, method, seed, step, success_rate, n_episodes, heldout_npe}
-(plus the success interval and the NLL bound, valid and paper-compatible, in bits/dim). The paired test
+(plus the success interval, the score `avg_max_reward` (on PushT Diffusion Policy's coverage score; None where
+the rollouts predate it) and the NLL bound, valid and paper-compatible, in bits/dim). The paired test
 matches PAC-DP and DP runs of the same task, demo count and seed (the same training and held-out demos,
 the same rollout seeds) and asks whether the per-pair differences are centred on zero: an exact two-sided
 sign-flip permutation test over all 2^pairs sign patterns, which assumes nothing about their distribution.
@@ -55,7 +56,7 @@ def final_rows(rows: list[dict], n_episodes: int, references: dict[str, tuple[fl
         result.append({
             "task": row["task"], "demos": row["demos"], "method": row["method"], "seed": row["seed"],
             "step": row["step"], "success_rate": rate, "n_episodes": n_episodes if rate is not None else 0,
-            "successes": successes,
+            "successes": successes, "avg_max_reward": row.get("avg_max_reward"),
             "ci95": list(wilson_interval(successes, n_episodes)) if successes is not None else None,
             "heldout_npe": row.get("npe"), "nll_bound_bits": row.get("nll_bound_bits"),
             "nll_paper_compatible_bits": row.get("nll_paper_compatible_bits"),
@@ -107,20 +108,21 @@ def _cell(values: list[float], digits: int) -> str:
 def render_evidence(summary: list[dict], comparisons: list[PairedComparison]) -> str:
     """The paper-shaped table (mean ± std over seeds of the final checkpoints) and the paired tests."""
     lines = ["## Final checkpoints: success rate and held-out NPE, mean ± std over seeds", "",
-             "| task | demos | method | success rate | held-out NPE | NLL bound (bits/dim) "
+             "| task | demos | method | success rate | score (avg max reward) | held-out NPE | NLL bound (bits/dim) "
              "| paper-compatible NLL, not a bound (bits/dim) | runs (successes / rollouts) |",
-             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for row in summary:
         groups[(row["task"], row["demos"], row["method"])].append(row)
     for (task, demos, method), rows in groups.items():
         rates = [r["success_rate"] for r in rows if r["success_rate"] is not None]
+        scores = [r["avg_max_reward"] for r in rows if r["avg_max_reward"] is not None]
         npes = [r["heldout_npe"] for r in rows if r["heldout_npe"] is not None]
         nlls = [r["nll_bound_bits"] for r in rows if r["nll_bound_bits"] is not None]
         papers = [r["nll_paper_compatible_bits"] for r in rows if r["nll_paper_compatible_bits"] is not None]
         counts = ", ".join(f"s{r['seed']}: {r['successes']}/{r['n_episodes']}" for r in rows if r["successes"] is not None)
-        lines.append(f"| {task} | {demos} | {method} | {_cell(rates, 3)} | {_cell(npes, 4)} | {_cell(nlls, 3)} "
-                     f"| {_cell(papers, 3)} | {counts} |")  # fmt: skip
+        lines.append(f"| {task} | {demos} | {method} | {_cell(rates, 3)} | {_cell(scores, 3)} | {_cell(npes, 4)} "
+                     f"| {_cell(nlls, 3)} | {_cell(papers, 3)} | {counts} |")  # fmt: skip
     lines += ["", "## PAC-DP vs DP, paired by (demos, seed): exact two-sided sign-flip test", "",
               "| task | metric | pairs | mean PAC-DP − DP | PAC-DP better / tie / DP better | p |",
               "|---|---|---|---|---|---|"]  # fmt: skip
