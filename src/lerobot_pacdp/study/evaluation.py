@@ -3,9 +3,9 @@ demos, plus the success rate and score (`avg_max_reward`) of each run's last che
 `rollout_outcome`, LeRobot's own rollout loop).
 
 Each (group, task, seed) keeps its rows in `<output_dir>/metrics/<group>/<task>/seed<k>/metrics.json` and
-its success rates and scores in `success.json` beside it; rerunning reuses both. A run with no checkpoint on disk (its
-checkpoints deleted, or published from another checkout into the committed `results/`) is reported from
-those files alone, beside the runs of its seed that are swept here.
+its success rates and scores in `success.json` beside it; rerunning reuses both. A run with no checkpoint on
+disk (its checkpoints deleted, or published from another checkout into the committed `results/`) is reported
+from those files alone, beside the runs of its seed that are swept here.
 """
 
 import json
@@ -170,8 +170,8 @@ def _one_thread_worker() -> None:
 
 
 def _rollouts(checkpoints: list[str], env_dict: dict, preset: Preset) -> Iterator[tuple[str, RolloutOutcome]]:
-    """(checkpoint, its rollouts' outcome) as each finishes: `preset.jobs` checkpoints side by side (one thread each, in
-    spawned processes; rollouts are most of a CPU study's metrics time), or one after another."""
+    """(checkpoint, its rollouts' outcome) as each finishes: `preset.jobs` checkpoints side by side (one thread
+    each, in spawned processes; rollouts are most of a CPU study's metrics time), or one after another."""
     episodes = preset.success_episodes
     if preset.jobs < 2 or len(checkpoints) < 2:
         for ckpt in checkpoints:
