@@ -150,7 +150,6 @@ class RolloutOutcome:
     avg_max_reward: float  # mean of each episode's best reward; on PushT, Diffusion Policy's coverage score
 
 
-@torch.no_grad()
 def success_rate(loaded: LoadedPolicy, env_cfg: EnvConfig, n_envs: int, n_episodes: int, seed: int) -> float:
     """Fraction of successful rollouts (`rollout_outcome`)."""
     return rollout_outcome(loaded, env_cfg, n_envs, n_episodes, seed).success_rate

@@ -96,13 +96,16 @@ def paired_comparisons(summary: list[dict]) -> list[PairedComparison]:
     return result
 
 
+def mean_spread(mean: float, std: float, n: int, digits: int) -> str:
+    """"mean ± std" over n seeds (or grid points); one has no spread to show, so it is the value alone."""
+    return f"{mean:.{digits}f}" + (f" ± {std:.{digits}f}" if n > 1 else "")
+
+
 def _cell(values: list[float], digits: int) -> str:
-    """Mean ± std over seeds; a single seed has no spread to show, so its cell is the value alone."""
     if not values:
         return "--"
-    if len(values) == 1:
-        return f"{values[0]:.{digits}f} (n=1)"
-    return f"{statistics.fmean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f} (n={len(values)})"
+    std = statistics.stdev(values) if len(values) > 1 else 0.0
+    return f"{mean_spread(statistics.fmean(values), std, len(values), digits)} (n={len(values)})"
 
 
 def render_evidence(summary: list[dict], comparisons: list[PairedComparison]) -> str:

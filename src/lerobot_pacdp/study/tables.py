@@ -26,7 +26,13 @@ from pathlib import Path
 from lerobot_pacdp.atomic_io import write_text_atomic
 from lerobot_pacdp.metrics.sweep import plot_metrics, summarize
 from lerobot_pacdp.study.evaluation import SPEC_FIELDS
-from lerobot_pacdp.study.evidence import at_reference_point, final_rows, paired_comparisons, render_evidence
+from lerobot_pacdp.study.evidence import (
+    at_reference_point,
+    final_rows,
+    mean_spread,
+    paired_comparisons,
+    render_evidence,
+)
 from lerobot_pacdp.study.plan import RunSpec
 from lerobot_pacdp.study.presets import Preset
 from lerobot_pacdp.study.state import run_state
@@ -129,10 +135,7 @@ def build_tables(stats: dict, references: dict[str, tuple[float, float]]) -> lis
 
 
 def _fmt(cell: dict | None, digits: int = 3) -> str:
-    if cell is None:
-        return "--"
-    spread = f" ± {cell['std']:.{digits}f}" if cell["n"] > 1 else ""  # one seed (or grid point): no spread
-    return f"{cell['mean']:.{digits}f}{spread}"
+    return "--" if cell is None else mean_spread(cell["mean"], cell["std"], cell["n"], digits)
 
 
 def render_markdown(cells: list[dict], last_k: int) -> str:
