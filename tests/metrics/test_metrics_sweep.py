@@ -121,6 +121,36 @@ def test_nll_baseline_is_fitted_to_the_complete_held_out_chunks(tiny_runs, tiny_
     assert len(result.nll.log_snr) == 5 and result.nll.log_snr[0] == pytest.approx(7.37, abs=0.01)
 
 
+def test_a_rollout_pass_repeats_exactly_because_the_policys_noise_is_seeded(tiny_runs):
+    """The envs are seeded by LeRobot's loop; the diffusion noise and a pacdp weight sample come from the global
+    generators, which `rollout_outcome` seeds too (and then restores, so the caller's stream is untouched)."""
+    from lerobot.envs.configs import PushtEnv
+
+    loaded = load_policy(sweep.list_checkpoints(tiny_runs["pacdp_s1"])[-1][1])
+    loaded.policy.config.inference_mode = "sample"
+    env_cfg = PushtEnv(obs_type="environment_state_agent_pos", episode_length=3)
+    select_action = loaded.policy.select_action
+    actions: list[torch.Tensor] = []
+    loaded.policy.select_action = lambda batch: actions.append(select_action(batch)) or actions[-1]
+
+    def one_pass(seed: int) -> list[torch.Tensor]:
+        actions.clear()
+        sweep.rollout_outcome(loaded, env_cfg, n_envs=1, n_episodes=2, seed=seed)
+        return list(actions)
+
+    torch.manual_seed(123)
+    first = one_pass(seed=0)
+    after_first = torch.rand(1)
+    torch.manual_seed(123)
+    torch.rand(1)  # the caller's stream continues as if no rollouts had drawn from it
+    again, other_seed = one_pass(seed=0), one_pass(seed=1)
+    assert len(first) == len(again) == 6  # 2 episodes x 3 steps
+    assert all(torch.equal(a, b) for a, b in zip(first, again, strict=True))
+    assert not all(torch.equal(a, b) for a, b in zip(first, other_seed, strict=True))
+    torch.manual_seed(123)
+    assert torch.equal(after_first, torch.rand(1))
+
+
 def test_success_rate_through_lerobots_eval_loop(tiny_runs, tmp_path, monkeypatch):
     """The tiny policies are PushT-shaped (agent xy + 16 keypoints -> xy), so gym-pusht can roll them out.
 

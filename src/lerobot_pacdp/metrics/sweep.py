@@ -160,23 +160,29 @@ def rollout_outcome(
     loaded: LoadedPolicy, env_cfg: EnvConfig, n_envs: int, n_episodes: int, seed: int
 ) -> RolloutOutcome:
     """Success rate and score of rollouts through LeRobot's own evaluation loop (which closes the envs it is
-    given, so each checkpoint gets fresh ones)."""
+    given, so each checkpoint gets fresh ones).
+
+    `seed` seeds the envs' resets (seeds `seed`, `seed` + 1, ...) and, as lerobot-eval's `set_seed` does, the
+    random generators the policy draws its diffusion noise (and a pacdp sample's weights) from, so the same call
+    gives the same rollouts; the caller's random state is restored afterwards."""
     from lerobot.envs.factory import make_env, make_env_pre_post_processors
     from lerobot.scripts.lerobot_eval import eval_policy_all
+    from lerobot.utils.random_utils import seeded_context
 
     envs = make_env(env_cfg, n_envs=n_envs, use_async_envs=False)
 
     env_preprocessor, env_postprocessor = make_env_pre_post_processors(env_cfg, loaded.policy.config)
-    info = eval_policy_all(
-        envs=envs,
-        policy=loaded.policy,
-        env_preprocessor=env_preprocessor,
-        env_postprocessor=env_postprocessor,
-        preprocessor=loaded.preprocessor,
-        postprocessor=loaded.postprocessor,
-        n_episodes=n_episodes,
-        start_seed=seed,
-    )
+    with seeded_context(seed):
+        info = eval_policy_all(
+            envs=envs,
+            policy=loaded.policy,
+            env_preprocessor=env_preprocessor,
+            env_postprocessor=env_postprocessor,
+            preprocessor=loaded.preprocessor,
+            postprocessor=loaded.postprocessor,
+            n_episodes=n_episodes,
+            start_seed=seed,
+        )
     return RolloutOutcome(info["overall"]["pc_success"] / 100.0, float(info["overall"]["avg_max_reward"]))
 
 
