@@ -150,6 +150,22 @@ def test_executor_skips_finished_runs_and_resumes_interrupted_ones(tmp_path, mon
     assert len(outcome.done) == 3 and len(calls.read_text().splitlines()) == 6
 
 
+def test_the_progress_of_a_resumed_run_counts_from_the_step_it_resumed_at(tmp_path):
+    """lerobot-train's bar counts its own call's steps (tqdm total = steps - resume step), and a resumed run's
+    log holds every call's bars: the heartbeat reads the last call's only."""
+    log = tmp_path / "train.log"
+    first = f"{executors.CALL_HEADER}2026-12-04 18:48:00 new at step 0: lerobot-train --steps=40000\n"
+    log.write_text(first + "Training:  80%|########  | 31857/40000 [1:02:00<15:00,  9.00step/s]")
+    assert executors.progress_step(log, 0) == 31857
+    with open(log, "a") as f:
+        f.write(f"{executors.CALL_HEADER}2026-12-04 21:04:58 resume at step 30000: lerobot-train --resume=true\n")
+    assert executors.progress_step(log, 30000) is None  # this call has shown no bar yet (the caller's fallback)
+    with open(log, "a") as f:
+        f.write("Training:  26%|##6       | 2605/10000 [04:50<13:44,  8.97step/s]")
+    assert executors.progress_step(log, 30000) == 32605
+    assert executors.progress_step(tmp_path / "missing.log", 0) is None
+
+
 def test_run_without_checkpoint_restarts_and_final_checkpoint_counts_as_done(tmp_path, monkeypatch):
     monkeypatch.setattr(executors, "POLL_S", 0.05)
     preset = _tiny_preset(demos=(2,), seeds=(0,))

@@ -30,6 +30,8 @@ logger = logging.getLogger("pacdp-study")
 POLL_S, HEARTBEAT_S = 2.0, 60.0
 # A run stopped by one of these (a user or scheduler ending it, not a crash) is paused: rerunning resumes it.
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+# Starts each lerobot-train call's part of a run's train.log (calls append: a resumed run's log holds them all).
+CALL_HEADER = "\n===== "
 
 
 @dataclass(frozen=True)
@@ -75,7 +77,7 @@ def train_environment(threads: int) -> dict[str, str]:
 def open_log(spec: RunSpec, output_dir: Path, state: RunState, command: list[str]) -> IO[str]:
     """The run's `train.log`, opened for appending, with a header line for this call."""
     log = open(spec.run_dir(output_dir) / LOG_FILE, "a")  # noqa: SIM115  (the caller's process writes to it)
-    log.write(f"\n===== {time.strftime('%Y-%m-%d %H:%M:%S')} {state.status} at step {state.step}: {shlex.join(command)}\n")
+    log.write(f"{CALL_HEADER}{time.strftime('%Y-%m-%d %H:%M:%S')} {state.status} at step {state.step}: {shlex.join(command)}\n")
     log.flush()
     return log
 
@@ -85,16 +87,17 @@ def log_tail(spec: RunSpec, output_dir: Path, lines: int = 15) -> str:
     return "\n  ".join(log.read_text(errors="replace").splitlines()[-lines:]) if log.is_file() else ""
 
 
-def progress_step(log_path: Path) -> int | None:
-    """The training step lerobot-train's progress bar shows last (tqdm `N/TOTAL [`)."""
+def progress_step(log_path: Path, start_step: int) -> int | None:
+    """The training step of the lerobot-train call that started at `start_step`, from the progress bar it shows
+    last in its part of the log: the bar (tqdm `N/TOTAL [`) counts the steps since the call's start."""
     try:
         with open(log_path, "rb") as f:
             f.seek(max(0, f.seek(0, os.SEEK_END) - 8192))
             tail = f.read().decode(errors="replace")
     except OSError:
         return None
-    found = re.findall(r"(\d+)/(\d+) \[", tail)
-    return int(found[-1][0]) if found else None
+    found = re.findall(r"(\d+)/(\d+) \[", tail.rsplit(CALL_HEADER, 1)[-1])
+    return start_step + int(found[-1][0]) if found else None
 
 
 def format_duration(seconds: float) -> str:
@@ -234,7 +237,7 @@ class LocalExecutor:
     def _heartbeat(self, active: list[_Active], pending: list[RunSpec], tally: _Tally, total: int, start: float) -> None:
         parts, remaining, rates = [], 0.0, []
         for run in active:
-            step = progress_step(run.spec.run_dir(self.output_dir) / LOG_FILE) or run.start_step
+            step = progress_step(run.spec.run_dir(self.output_dir) / LOG_FILE, run.start_step) or run.start_step
             elapsed = time.monotonic() - run.started
             rate = elapsed / (step - run.start_step) if step > run.start_step else None
             parts.append(f"{run.spec.name} step {step}/{run.stop_at}" + (f" ({rate:.2f} s/step)" if rate else ""))
