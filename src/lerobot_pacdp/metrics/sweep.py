@@ -289,7 +289,7 @@ class SweepConfig:
     output_dir: Path = Path("outputs/metrics")
     dataset: DatasetArgs = field(default_factory=DatasetArgs)  # default: each run's dataset
     episodes: EpisodeSelection | None = None  # held-out episodes, [140,141] or 140-199 (default: each run's eval split)
-    seed: int = 0  # the per-example draws of t and eps
+    seed: int = 0  # the per-example draws of t and eps, and the rollouts' env seeds and policy noise
     batch_size: int = 256
     nll: bool = True  # false: NPE (and success rate) only
     nll_steps: int | None = None  # evaluate the NLL bound at this many diffusion steps (default: all)
