@@ -150,11 +150,6 @@ class RolloutOutcome:
     avg_max_reward: float  # mean of each episode's best reward; on PushT, Diffusion Policy's coverage score
 
 
-def success_rate(loaded: LoadedPolicy, env_cfg: EnvConfig, n_envs: int, n_episodes: int, seed: int) -> float:
-    """Fraction of successful rollouts (`rollout_outcome`)."""
-    return rollout_outcome(loaded, env_cfg, n_envs, n_episodes, seed).success_rate
-
-
 @torch.no_grad()
 def rollout_outcome(
     loaded: LoadedPolicy, env_cfg: EnvConfig, n_envs: int, n_episodes: int, seed: int
@@ -374,7 +369,9 @@ def run_sweep(cfg: SweepConfig) -> tuple[list[dict], dict]:
             )
             row = checkpoint_row(result, label or method_label(loaded), run, step, loaded)
             row["success_rate"] = (
-                success_rate(loaded, cfg.env, cfg.eval_batch_size, cfg.eval_episodes, cfg.seed) if cfg.env else None
+                rollout_outcome(loaded, cfg.env, cfg.eval_batch_size, cfg.eval_episodes, cfg.seed).success_rate
+                if cfg.env
+                else None
             )
             rows.append(row)
             _write_tables(rows, settings, cfg.output_dir)
