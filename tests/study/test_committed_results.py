@@ -67,6 +67,8 @@ def test_the_committed_tables_regenerate_from_their_metrics_files(tmp_path, push
         ("study_cpu_v2_steps6000", ["--steps=6000", "--save_freq=1000", "--success_every=2000"]),
         # STEPS=12000 SUCCESS_EVERY=4000 (20 and 40 demos)
         ("study_cpu_v2_steps12000", ["--steps=12000", "--save_freq=1000", "--success_every=4000"]),
+        # STEPS=24000 SUCCESS_EVERY=8000 DEMOS=20
+        ("study_cpu_v2_steps24000", ["--steps=24000", "--save_freq=1000", "--success_every=8000"]),
     ],
 )
 def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_files(tmp_path, request, study, flags):
