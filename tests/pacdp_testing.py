@@ -6,6 +6,7 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
 from lerobot_pacdp.configuration_pacdp import PacdpConfig
+from lerobot_pacdp.modeling_pacdp import PacdpPolicy
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DIR = REPO_ROOT.parent / "shared"
@@ -51,6 +52,22 @@ def random_batch(config: PacdpConfig, batch_size: int = 4, seed: int = 0) -> dic
         "action": torch.randn(batch_size, horizon, ACTION_DIM, generator=generator),
         "action_is_pad": is_pad,
     }
+
+
+def train_steps(policy: PacdpPolicy, steps: int, lr: float = 1e-2) -> list[dict[str, torch.Tensor]]:
+    """lerobot-train's step on random batches: Eq. 9 forward, backward, an Adam step, then `update()` (the EMA).
+    Returns the trained weights after each step, before its EMA update."""
+    policy.train()
+    optimizer = torch.optim.Adam(policy.get_optim_params(), lr=lr)
+    history = []
+    for step in range(steps):
+        loss, _ = policy.forward(random_batch(policy.config, seed=step))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        history.append({k: v.detach().clone() for k, v in policy.trained_diffusion.named_parameters()})
+        policy.update()
+    return history
 
 
 def make_tiny_dataset(root: Path, episode_lengths: list[int], seed: int = 0, repo_id: str = "local/tiny"):

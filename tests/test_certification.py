@@ -14,19 +14,7 @@ from lerobot_pacdp.certification import (
 )
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
 
-from pacdp_testing import random_batch, tiny_config
-
-
-def _train(policy: PacdpPolicy, steps: int = 3) -> None:
-    """What lerobot-train does per step: Eq. 9 forward, backward, AdamW on the policy's groups, `update`."""
-    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=1e-2, weight_decay=1e-2)
-    policy.train()
-    for step in range(steps):
-        loss, _ = policy.forward(random_batch(policy.config, seed=step))
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        policy.update()
+from pacdp_testing import tiny_config, train_steps
 
 
 def test_the_deterministic_tensors_are_groupnorm_and_the_film_projections():
@@ -67,8 +55,8 @@ def test_training_with_freeze_moves_only_the_posterior():
     mu_before = frozen.raw_diffusion.unet.final_conv[1].weight.clone()
     trained = {id(p) for group in frozen.get_optim_params() for p in group["params"]}
     assert not any(id(p) in trained for p in frozen.raw_diffusion.parameters() if not p.requires_grad)
-    _train(frozen)
-    _train(free)
+    train_steps(frozen, 3)
+    train_steps(free, 3)
     for network in (frozen.diffusion, frozen.raw_diffusion):  # bitwise, in the average and the trained copy
         assert tensor_differences(deterministic_tensors(network), before["frozen"]) == []
     assert not torch.equal(frozen.raw_diffusion.unet.final_conv[1].weight, mu_before)  # the posterior trained

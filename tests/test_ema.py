@@ -10,27 +10,12 @@ from lerobot_pacdp.bayesian_layers import sampled_weights
 from lerobot_pacdp.ema import ema_decay, update_ema
 from lerobot_pacdp.modeling_pacdp import PacdpPolicy
 
-from pacdp_testing import random_batch, tiny_config
+from pacdp_testing import random_batch, tiny_config, train_steps
 
 
 def _policy(seed: int = 0, **overrides) -> PacdpPolicy:
     torch.manual_seed(seed)
     return PacdpPolicy(tiny_config(**overrides))
-
-
-def _train(policy: PacdpPolicy, steps: int, lr: float = 1e-2) -> list[dict[str, torch.Tensor]]:
-    """lerobot-train's step (forward, backward, step, update()); returns the trained weights after each."""
-    policy.train()
-    optimizer = torch.optim.Adam(policy.get_optim_params(), lr=lr)
-    history = []
-    for step in range(steps):
-        loss, _ = policy.forward(random_batch(policy.config, seed=step))
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        history.append({k: v.detach().clone() for k, v in policy.trained_diffusion.named_parameters()})
-        policy.update()
-    return history
 
 
 def test_decay_is_chis_warm_up_capped_at_max_decay():
@@ -62,7 +47,7 @@ def test_update_averages_trained_parameters_and_copies_frozen_ones_and_buffers()
 def test_the_acting_weights_follow_the_ema_recurrence_of_the_trained_weights():
     policy = _policy()
     initial = {k: v.detach().clone() for k, v in policy.diffusion.named_parameters()}
-    history = _train(policy, steps=5)
+    history = train_steps(policy, steps=5)
     expected = initial
     for step, trained in enumerate(history):
         decay = ema_decay(step, 0.75, 0.9999)
@@ -76,7 +61,7 @@ def test_the_acting_weights_follow_the_ema_recurrence_of_the_trained_weights():
 
 def test_eval_forward_and_both_inference_modes_use_the_ema_weights():
     policy = _policy()
-    _train(policy, steps=4)
+    train_steps(policy, steps=4)
     policy.eval()
     batch = random_batch(policy.config)
     torch.manual_seed(3)
@@ -101,14 +86,14 @@ def test_eval_forward_and_both_inference_modes_use_the_ema_weights():
 def test_without_ema_the_trained_network_acts():
     policy = _policy(use_ema=False)
     assert policy.raw_diffusion is None and policy.trained_diffusion is policy.diffusion
-    history = _train(policy, steps=2)
+    history = train_steps(policy, steps=2)
     acting = dict(policy.diffusion.named_parameters())
     assert all(torch.equal(acting[k], v) for k, v in history[-1].items())
 
 
 def test_save_and_load_restore_trained_weights_ema_and_update_count_exactly(tmp_path):
     policy = _policy()
-    _train(policy, steps=3)
+    train_steps(policy, steps=3)
     policy.save_pretrained(tmp_path)
     saved = load_file(tmp_path / "model.safetensors")
     assert any(k.startswith("raw_diffusion.") for k in saved) and saved["num_updates"].item() == 3
@@ -122,7 +107,7 @@ def test_save_and_load_restore_trained_weights_ema_and_update_count_exactly(tmp_
 
 def test_a_checkpoint_saved_before_ema_existed_loads_with_the_average_starting_from_its_weights(tmp_path, caplog):
     policy = _policy()
-    _train(policy, steps=2)
+    train_steps(policy, steps=2)
     policy.save_pretrained(tmp_path)
     tensors = load_file(tmp_path / "model.safetensors")
     old = {k: v for k, v in tensors.items() if not k.startswith("raw_diffusion.") and k != "num_updates"}

@@ -11,7 +11,7 @@ from lerobot_pacdp.configuration_pacdp import PacdpConfig
 from lerobot_pacdp.modeling_pacdp import CheckpointMismatchError, PacdpPolicy
 from lerobot_pacdp.objective import pac_bayes_objective
 
-from pacdp_testing import ENV_DIM, STATE_DIM, random_batch, tiny_config
+from pacdp_testing import ENV_DIM, STATE_DIM, random_batch, tiny_config, train_steps
 
 BAYESIAN_SUFFIXES = ("_rho", "_prior_mu", "prior_rho")
 
@@ -154,21 +154,9 @@ def _plain_diffusion_copy(policy: PacdpPolicy) -> DiffusionPolicy:
     return plain.eval()
 
 
-def _train_steps(policy: PacdpPolicy, steps: int, lr: float = 1e-2) -> None:
-    """Optimizer steps as lerobot-train makes them, the EMA update included."""
-    policy.train()
-    optimizer = torch.optim.Adam(policy.get_optim_params(), lr=lr)
-    for step in range(steps):
-        loss, _ = policy.forward(random_batch(policy.config, seed=step))
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        policy.update()
-
-
 def test_mean_mode_actions_equal_a_plain_diffusion_policy_with_weights_mu():
     policy = _policy()
-    _train_steps(policy, 3)  # move mu (and its EMA) away from the prior so the check is not trivial
+    train_steps(policy, 3)  # move mu (and its EMA) away from the prior so the check is not trivial
     policy.eval()
     plain = _plain_diffusion_copy(policy)
     obs = _observation()
@@ -214,7 +202,7 @@ def test_mean_mode_is_deterministic_across_chunks():
 
 def test_save_load_round_trip_restores_mu_rho_and_prior_exactly(tmp_path):
     policy = _policy(kl_weight=1e-3)
-    _train_steps(policy, 3)
+    train_steps(policy, 3)
     policy.save_pretrained(tmp_path)
     saved = json.loads((tmp_path / "config.json").read_text())
     assert saved["type"] == "pacdp" and saved["num_train_samples"] == 1000 and saved["kl_weight"] == 1e-3
