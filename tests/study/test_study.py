@@ -166,6 +166,16 @@ def test_the_progress_of_a_resumed_run_counts_from_the_step_it_resumed_at(tmp_pa
     assert executors.progress_step(tmp_path / "missing.log", 0) is None
 
 
+def test_the_time_left_is_the_last_slot_to_free_up_not_the_work_shared_over_idle_slots():
+    assert executors.time_left([1600.0], [], jobs=2) == 1600.0  # one run left: the other core cannot help it
+    assert executors.time_left([], [], jobs=2) == 0.0
+    # slots end at 300 and 500; the waiting 1000 s run starts at 300 (ends 1300), the 200 s one at 500 (ends 700)
+    assert executors.time_left([500.0, 300.0], [1000.0, 200.0], jobs=2) == 1300.0
+    # one running run, a free slot: the waiting runs go 0 -> 400, then 400 -> 700 beside the 900 s run
+    assert executors.time_left([900.0], [400.0, 300.0], jobs=2) == 900.0
+    assert executors.time_left([100.0], [400.0, 300.0], jobs=1) == 800.0  # one slot: everything in turn
+
+
 def test_run_without_checkpoint_restarts_and_final_checkpoint_counts_as_done(tmp_path, monkeypatch):
     monkeypatch.setattr(executors, "POLL_S", 0.05)
     preset = _tiny_preset(demos=(2,), seeds=(0,))

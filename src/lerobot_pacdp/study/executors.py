@@ -52,6 +52,16 @@ def default_trainer() -> list[str]:
     return [found]
 
 
+def time_left(running: list[float], waiting: list[float], jobs: int) -> float:
+    """Seconds until the last run ends: the running runs' remaining seconds occupy their slots, and each waiting
+    run starts in the first slot to free up (the pool's order). One run cannot use two slots."""
+    slots = sorted(running + [0.0] * max(0, jobs - len(running)))
+    for seconds in waiting:
+        slots[0] += seconds
+        slots.sort()
+    return max(slots, default=0.0)
+
+
 def train_command(spec: RunSpec, output_dir: Path, trainer: list[str], state: RunState) -> list[str]:
     """The lerobot-train call that continues `spec` from `state` (a new run: its request file)."""
     if state.status == "resume":
@@ -235,24 +245,25 @@ class LocalExecutor:
                          spec.run_dir(self.output_dir) / LOG_FILE, log_tail(spec, self.output_dir))  # fmt: skip
 
     def _heartbeat(self, active: list[_Active], pending: list[RunSpec], tally: _Tally, total: int, start: float) -> None:
-        parts, remaining, rates = [], 0.0, []
+        parts, left, rates = [], [], []
         for run in active:
             step = progress_step(run.spec.run_dir(self.output_dir) / LOG_FILE, run.start_step) or run.start_step
             elapsed = time.monotonic() - run.started
             rate = elapsed / (step - run.start_step) if step > run.start_step else None
             parts.append(f"{run.spec.name} step {step}/{run.stop_at}" + (f" ({rate:.2f} s/step)" if rate else ""))
+            left.append((run.stop_at - step, rate))
             if rate:
-                remaining += (run.stop_at - step) * rate
                 rates.append(rate)
         known = self.seconds_per_step or rates
         eta = ""
         if known:
             per_step = sorted(known)[len(known) // 2]
-            todo = 0
+            running = [steps * (rate or per_step) for steps, rate in left]
+            waiting = []
             for spec in pending:
                 step = run_state(spec, self.output_dir).step
-                todo += self._stop_at(spec, step) - step
-            eta = f"; estimated time left ~{format_duration((remaining + todo * per_step) / self.jobs)}"
+                waiting.append((self._stop_at(spec, step) - step) * per_step)
+            eta = f"; estimated time left ~{format_duration(time_left(running, waiting, self.jobs))}"
         logger.info("[progress %s] %d/%d finished, %d running, %d waiting%s | %s",
                     format_duration(time.monotonic() - start), len(tally.done), total, len(active), len(pending),
                     eta, " | ".join(parts))  # fmt: skip
