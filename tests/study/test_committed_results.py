@@ -69,6 +69,8 @@ def test_the_committed_tables_regenerate_from_their_metrics_files(tmp_path, push
         ("study_cpu_v2_steps12000", ["--steps=12000", "--save_freq=1000", "--success_every=4000"]),
         # STEPS=24000 SUCCESS_EVERY=8000 DEMOS=20
         ("study_cpu_v2_steps24000", ["--steps=24000", "--save_freq=1000", "--success_every=8000"]),
+        # STEPS=40000 SUCCESS_EVERY=10000 DEMOS=20 (Can)
+        ("study_cpu_v2_steps40000", ["--steps=40000", "--save_freq=1000", "--success_every=10000"]),
     ],
 )
 def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_files(tmp_path, request, study, flags):
