@@ -26,8 +26,8 @@ def test_each_budget_is_a_row_with_seed_means_a_paired_verdict_and_the_papers_va
         "BDP": [(0.4, 0.2), (0.4, 0.2), (0.4, 0.2)],
         "PAC-DP": [(0.7, 0.1), (0.6, 0.1), (0.8, 0.1)],
     })  # fmt: skip
-    can_longer = _study(tmp_path / "can_longer", "can", 20, 200, {
-        "DP": [(0.5, 0.3)], "BDP": [(0.52, 0.3)], "PAC-DP": [(0.48, 0.1)],
+    can_longer = _study(tmp_path / "can_longer", "can", 20, 200, {  # seed 1's BDP is not rolled out yet
+        "DP": [(0.5, 0.3), (0.6, 0.3)], "BDP": [(0.52, 0.3), (None, 0.3)], "PAC-DP": [(0.48, 0.1), (0.7, 0.1)],
     })  # fmt: skip
     lift = _study(tmp_path / "lift", "lift", 40, 100, {
         "DP": [(0.9, 0.1)] * 3, "BDP": [(0.8, 0.1)] * 3, "PAC-DP": [(0.92, 0.1), (0.9, 0.1), (0.9, 0.1)],

@@ -54,6 +54,8 @@ def overview_rows(study_dirs: Sequence[Path]) -> list[OverviewRow]:
     source: dict[tuple[str, int, int], Path] = {}
     for study in study_dirs:
         for row in json.loads((study / "summary.json").read_text()):
+            if row["success_rate"] is None or row["heldout_npe"] is None:
+                continue  # a run not rolled out (or measured) yet
             key = (row["task"], row["demos"], row["step"])
             if source.setdefault(key, study) != study:
                 raise ValueError(f"{key} is in both {source[key]} and {study}: give each budget one study.")
