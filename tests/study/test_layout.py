@@ -7,7 +7,7 @@ from pathlib import Path
 import lerobot_pacdp
 
 PACKAGE = Path(lerobot_pacdp.__file__).parent
-ORDER = ["presets", "plan", "state", "data", "executors", "slurm", "evaluation", "evidence", "tables", "runner"]
+ORDER = ["presets", "plan", "state", "data", "executors", "slurm", "evaluation", "evidence", "overview", "tables", "runner"]
 
 
 def _imported(path: Path) -> set[str]:
