@@ -14,7 +14,7 @@ from lerobot_pacdp.study.executors import LocalExecutor
 from lerobot_pacdp.study.plan import RunSpec, plan_task, split_episodes, train_config
 from lerobot_pacdp.study.presets import Preset, StudyError, TaskPreset, get_preset, with_overrides
 from lerobot_pacdp.study.state import DONE_FILE, LOG_FILE, REQUEST_FILE, run_state, write_json_atomic
-from lerobot_pacdp.train_runs import final_checkpoint
+from lerobot_pacdp.train_runs import final_checkpoint, step_dirs
 
 from fake_trainer import write_checkpoint
 
@@ -462,6 +462,38 @@ def test_a_seed_with_one_run_on_disk_keeps_the_stored_rows_and_success_rates_of_
     assert json.loads((directory / "success.json").read_text())["scores"] == {here_checkpoint: 0.8}
     stored = json.loads((directory / "metrics.json").read_text())["rows"]
     assert sorted(row["label"] for row in stored) == sorted(s.name for s in [here, *elsewhere])
+
+
+def test_a_rollout_cached_while_the_run_was_unfinished_stays_off_the_finished_runs_schedule(tmp_path, monkeypatch):
+    monkeypatch.setattr(executors, "POLL_S", 0.05)
+    preset = dataclasses.replace(_tiny_preset(demos=(2,), seeds=(0,)), success_episodes=2, success_last_k=1,
+                                 success_every=4)  # fmt: skip
+    spec = plan_task(preset.tasks[0], preset, num_episodes=8)[0]
+    _write_requests([spec], preset, tmp_path)
+    _local(preset, tmp_path).run([spec])
+    step2, step4, step6 = (str(d) for d in step_dirs(spec.train_dir(tmp_path)))
+    directory = evaluation.metrics_dir(tmp_path, spec.group, spec.task, 0)
+    env = preset.tasks[0].train_config["env"]
+    settings = {"episodes": 2, "seed": 0, "env": env}  # a report at step 2 rolled out the run's last checkpoint then
+    write_json_atomic(directory / "success.json", {"settings": settings, "rates": {step2: 0.25}, "scores": {step2: 0.3}})
+
+    def fake_sweep(cfg):
+        rows = [{"label": spec.name, "run": str(cfg.runs[0]), "checkpoint": c, "step": s, "npe": 0.1,
+                 "success_rate": None} for s, c in ((2, step2), (4, step4), (6, step6))]  # fmt: skip
+        return rows, {}
+
+    rolled_out = []
+
+    def fake_rollouts(checkpoints, env_dict, preset):
+        rolled_out.extend(checkpoints)
+        return ((c, RolloutOutcome(success_rate=0.5, avg_max_reward=0.8)) for c in checkpoints)
+
+    monkeypatch.setattr(evaluation, "run_sweep", fake_sweep)
+    monkeypatch.setattr(evaluation, "_rollouts", fake_rollouts)
+    rows = evaluation.evaluate_runs(preset, [spec], tmp_path)
+    assert [(r["step"], r["success_rate"]) for r in rows] == [(2, None), (4, 0.5), (6, 0.5)]
+    assert rolled_out == [step4, step6]  # step 4 on the success_every schedule, step 6 the last
+    assert json.loads((directory / "success.json").read_text())["rates"] == {step2: 0.25, step4: 0.5, step6: 0.5}
 
 
 def test_adopting_a_published_study_adds_the_rows_and_rates_of_runs_the_cache_lacks_and_keeps_its_own(tmp_path):

@@ -122,7 +122,9 @@ def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfini
 def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path) -> None:
     """Success rate and score (`avg_max_reward`) of each run's `success_checkpoints`, cached in `cache_file` as
     each lands; checkpoints not on disk (runs published from another checkout) get only what is cached, and a
-    rate cached before scores were kept keeps no score (remove it from the cache to roll it out again)."""
+    rate cached before scores were kept keeps no score (remove it from the cache to roll it out again). Only
+    the checkpoints scheduled now get a rate: one cached by a report of the run while unfinished (its last
+    checkpoint then) stays cached but off its curve."""
     task = preset.task(rows[0]["task"])
     env_dict = task.train_config["env"]
     settings = {"episodes": preset.success_episodes, "seed": 0, "env": env_dict}
@@ -140,8 +142,9 @@ def add_success_rates(preset: Preset, rows: list[dict], cache_file: Path) -> Non
         logger.info("success rate %s: %.3f (score %.3f) over %d rollouts", ckpt, outcome.success_rate,
                     outcome.avg_max_reward, preset.success_episodes)  # fmt: skip
         write_json_atomic(cache_file, {"settings": settings, "rates": rates, "scores": scores})
+    scheduled = set(wanted)
     for row in rows:
-        if row["checkpoint"] in rates:
+        if row["checkpoint"] in rates and row["checkpoint"] in scheduled:
             row["success_rate"] = rates[row["checkpoint"]]
             row["avg_max_reward"] = scores.get(row["checkpoint"])
 
