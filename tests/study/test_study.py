@@ -422,6 +422,18 @@ def test_a_later_call_over_other_demos_keeps_the_earlier_runs_metrics_rows_of_th
     assert stored_labels() == sorted(s.name for s in two)
 
 
+def _record_rollouts(monkeypatch) -> list[str]:
+    """Rollouts replaced by a success rate of 0.5 and a score of 0.8 each; returns the checkpoints rolled out."""
+    rolled_out = []
+
+    def fake_rollouts(checkpoints, env_dict, preset):
+        rolled_out.extend(checkpoints)
+        return ((c, RolloutOutcome(success_rate=0.5, avg_max_reward=0.8)) for c in checkpoints)
+
+    monkeypatch.setattr(evaluation, "_rollouts", fake_rollouts)
+    return rolled_out
+
+
 def test_a_seed_with_one_run_on_disk_keeps_the_stored_rows_and_success_rates_of_its_runs_trained_elsewhere(
     tmp_path, monkeypatch
 ):
@@ -445,14 +457,8 @@ def test_a_seed_with_one_run_on_disk_keeps_the_stored_rows_and_success_rates_of_
         write_json_atomic(cfg.output_dir / "metrics.json", {"settings": {"nll_steps": cfg.nll_steps}, "rows": rows})
         return rows, {}
 
-    rolled_out = []
-
-    def fake_rollouts(checkpoints, env_dict, preset):
-        rolled_out.extend(checkpoints)
-        return ((c, RolloutOutcome(success_rate=0.5, avg_max_reward=0.8)) for c in checkpoints)
-
     monkeypatch.setattr(evaluation, "run_sweep", fake_sweep)
-    monkeypatch.setattr(evaluation, "_rollouts", fake_rollouts)
+    rolled_out = _record_rollouts(monkeypatch)
     rows = evaluation.evaluate_runs(preset, [here, *elsewhere], tmp_path)
     assert [(r["name"], r["npe"], r["success_rate"], r["avg_max_reward"]) for r in rows] == [
         (here.name, 0.1, 0.5, 0.8), *((s.name, 0.2, 0.75, None) for s in elsewhere)  # published without scores
@@ -482,14 +488,8 @@ def test_a_rollout_cached_while_the_run_was_unfinished_stays_off_the_finished_ru
                  "success_rate": None} for s, c in ((2, step2), (4, step4), (6, step6))]  # fmt: skip
         return rows, {}
 
-    rolled_out = []
-
-    def fake_rollouts(checkpoints, env_dict, preset):
-        rolled_out.extend(checkpoints)
-        return ((c, RolloutOutcome(success_rate=0.5, avg_max_reward=0.8)) for c in checkpoints)
-
     monkeypatch.setattr(evaluation, "run_sweep", fake_sweep)
-    monkeypatch.setattr(evaluation, "_rollouts", fake_rollouts)
+    rolled_out = _record_rollouts(monkeypatch)
     rows = evaluation.evaluate_runs(preset, [spec], tmp_path)
     assert [(r["step"], r["success_rate"]) for r in rows] == [(2, None), (4, 0.5), (6, 0.5)]
     assert rolled_out == [step4, step6]  # step 4 on the success_every schedule, step 6 the last
