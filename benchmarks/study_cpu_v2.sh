@@ -14,13 +14,15 @@
 #   STEPS=6000 SUCCESS_EVERY=2000 bash benchmarks/study_cpu_v2.sh lift 0 1 2
 #   -> outputs/study_cpu_v2_steps6000, results/study_cpu_v2_steps6000 (checkpoints every 1000 steps)
 # DEMOS=20 (or 40) trains only those runs of each piece; the tables always cover every finished run.
+# METHODS=PAC-DP (or DP,BDP) trains and reports only those methods' runs (give it to the publish step too).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 suffix="${STEPS:+_steps$STEPS}"
 out="${OUT:-outputs/study_cpu_v2$suffix}"
 zarr=../shared/data/pusht/pusht_cchi_v7_replay.zarr
 study=(.venv/bin/pacdp-study --preset=cpu_v2 --output_dir="$out" --pusht_zarr="$zarr"
-       ${STEPS:+--steps="$STEPS" --save_freq=1000} ${SUCCESS_EVERY:+--success_every="$SUCCESS_EVERY"})
+       ${STEPS:+--steps="$STEPS" --save_freq=1000} ${SUCCESS_EVERY:+--success_every="$SUCCESS_EVERY"}
+       ${METHODS:+--methods="[$METHODS]"})
 export HF_HUB_OFFLINE=1
 task="${1:?usage: $0 lift|can|pusht SEED... | publish}"
 shift

@@ -284,6 +284,23 @@ def test_dry_run_prints_the_plan(tmp_path, capsys, pusht_zarr):
     assert out.count(" new") == 3 and not (tmp_path / "runs").exists()
 
 
+
+def test_methods_keeps_only_the_named_methods_runs(tmp_path, capsys, pusht_zarr):
+    argv = ["--preset=cpu", f"--output_dir={tmp_path}", f"--pusht_zarr={pusht_zarr}", "--dry_run=true", "--seeds=[3]",
+            "--demos=[5]", "--methods=[PAC-DP]"]  # fmt: skip
+    assert runner.main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.count(" new") == 1 and "PAC-DP" in out and "BDP" not in out
+
+
+def test_an_unknown_method_is_one_line_and_exit_2_with_nothing_written(tmp_path, capsys, pusht_zarr):
+    argv = ["--preset=cpu", f"--output_dir={tmp_path}", f"--pusht_zarr={pusht_zarr}", "--methods=[PACDP]"]
+    assert runner.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err == "pacdp-study: error: --methods: unknown PACDP; choose from DP, BDP, PAC-DP, LeRobot-DP.\n"
+    assert not (tmp_path / "runs").exists()
+
+
 @pytest.mark.slow
 def test_tiny_study_end_to_end_through_lerobot_train(tmp_path, monkeypatch):
     """Two methods x one seed through the real lerobot-train (a few steps), then metrics, the two final

@@ -10,7 +10,7 @@ import copy
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import draccus
 import numpy as np
@@ -119,6 +119,17 @@ def plan_study(
         for task in preset.tasks
         for spec in plan_task(task, preset, num_episodes[task.name], long_pair, lerobot_diffusion)
     ]
+
+
+def keep_methods(specs: list[RunSpec], methods: Sequence[str] | None) -> list[RunSpec]:
+    """The runs of the given methods (all when None): e.g. only PAC-DP at a longer budget, to see where its
+    success plateaus."""
+    if methods is None:
+        return specs
+    unknown = sorted(set(methods) - set(get_args(Method)))
+    if unknown:
+        raise StudyError(f"--methods: unknown {', '.join(unknown)}; choose from {', '.join(get_args(Method))}.")
+    return [spec for spec in specs if spec.method in methods]
 
 
 def lerobot_diffusion_policy(pacdp_policy: Mapping) -> dict:

@@ -22,7 +22,7 @@ from lerobot_pacdp.cli_errors import run_draccus_cli
 from lerobot_pacdp.study.data import count_episodes, dataset_root, prepare_dataset
 from lerobot_pacdp.study.evaluation import adopt_published, evaluate_runs
 from lerobot_pacdp.study.executors import LocalExecutor, Outcome, default_trainer
-from lerobot_pacdp.study.plan import RunSpec, plan_study, train_config
+from lerobot_pacdp.study.plan import RunSpec, keep_methods, plan_study, train_config
 from lerobot_pacdp.study.presets import Preset, StudyError, get_preset, long_pair_preset, with_overrides
 from lerobot_pacdp.study.slurm import SlurmExecutor, SlurmOptions
 from lerobot_pacdp.study.state import REQUEST_FILE, check_requests, format_plan, write_json_atomic
@@ -50,6 +50,7 @@ class StudyConfig:
     seeds: list[int] | None = None
     steps: int | None = None
     save_freq: int | None = None  # default with --steps: steps / 10
+    methods: list[str] | None = None  # train and report only these (DP, BDP, PAC-DP, LeRobot-DP); default: all
     kl_weights: list[float] | None = None  # PAC-DP grid (each task's reference lambda always included)
     prior_rhos: list[float] | None = None  # BDP / PAC-DP rho grid
     executor: str = "local"  # local: lerobot-train subprocesses here; slurm: one job per run (--slurm.*)
@@ -118,7 +119,7 @@ def run_study(cfg: StudyConfig) -> int:
     output_dir = cfg.output_dir.absolute()
     pusht_zarr = cfg.pusht_zarr.absolute() if cfg.pusht_zarr is not None else None
     episodes = {task.name: count_episodes(task, output_dir, pusht_zarr) for task in preset.tasks}
-    specs = plan_study(preset, episodes, cfg.long_pair, cfg.lerobot_diffusion)
+    specs = keep_methods(plan_study(preset, episodes, cfg.long_pair, cfg.lerobot_diffusion), cfg.methods)
     check_requests(specs, output_dir)
     executor = _executor(cfg, preset, output_dir) if cfg.train or cfg.dry_run else None
     if cfg.dry_run:
