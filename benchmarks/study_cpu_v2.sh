@@ -49,5 +49,6 @@ done
 [ -f "$dest/README.md" ] && cp "$dest/README.md" "$dest.tmp/"  # the hand-written notes stay
 rm -rf "$dest" && mv "$dest.tmp" "$dest"
 echo "tables of the finished pieces: $dest (evidence.md, summary.json, paired.json, tables.md, figures/)"
-echo "the README's at-a-glance table (paste it over the old one: tests/study/test_overview.py compares them):"
-.venv/bin/python -m lerobot_pacdp.study.overview results/study_cpu_v2*
+echo "the README's at-a-glance table (paste it over the old one: tests/study/test_overview.py compares them)"
+echo "and its plot of final success against the budget, results/study_cpu_v2/figures/budgets.png:"
+.venv/bin/python -m lerobot_pacdp.study.overview results/study_cpu_v2* --budget_plot=results/study_cpu_v2/figures/budgets.png

@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from lerobot_pacdp.study import overview
 
 from pacdp_testing import REPO_ROOT
@@ -67,3 +69,33 @@ def test_the_readmes_at_a_glance_table_is_the_one_the_committed_studies_give():
         "README's at-a-glance table is out of date: paste `python -m lerobot_pacdp.study.overview "
         "results/study_cpu_v2*` into it"
     )
+
+
+def test_budget_points_give_each_methods_final_success_per_budget_even_where_other_methods_are_missing(tmp_path):
+    short = _study(tmp_path / "short", "can", 20, 100, {
+        "DP": [(0.5, 0.2), (0.7, 0.2)], "BDP": [(0.4, 0.2), (0.4, 0.2)], "PAC-DP": [(0.6, 0.1), (0.8, 0.1)],
+    })  # fmt: skip
+    longer = _study(tmp_path / "longer", "can", 20, 300, {"PAC-DP": [(0.9, 0.1)]})  # one method, seed 0 only
+
+    points = overview.budget_points([longer, short])
+
+    assert list(points) == [("can", 20)]
+    # DP over seeds 0, 1: mean 0.6, std (ddof=1) of 0.5 / 0.7 = sqrt(0.02) = 0.1414
+    (dp,) = points[("can", 20)]["DP"]
+    assert (dp.steps, dp.seeds) == (100, (0, 1)) and dp.mean == pytest.approx(0.6) and dp.std == pytest.approx(0.1414, abs=1e-4)
+    assert [(p.steps, p.mean, p.std, p.seeds) for p in points[("can", 20)]["PAC-DP"]] == [
+        (100, pytest.approx(0.7), pytest.approx(0.1414, abs=1e-4), (0, 1)), (300, 0.9, 0.0, (0,))
+    ]
+    assert overview.overview_rows([longer, short])[0].steps == 100  # the table keeps only budgets with every method
+
+
+def test_the_budget_plot_is_written_through_the_cli(tmp_path):
+    import matplotlib.image
+
+    study = _study(tmp_path / "s", "lift", 20, 3000, {"DP": [(0.9, 0.1)], "BDP": [(0.9, 0.1)], "PAC-DP": [(0.8, 0.1)]})
+    plot = tmp_path / "figures" / "budgets.png"
+    run = subprocess.run([sys.executable, "-m", "lerobot_pacdp.study.overview", str(study), f"--budget_plot={plot}"],
+                         capture_output=True, text=True, check=False)  # fmt: skip
+    assert run.returncode == 0 and run.stdout.startswith("| task, training demos |")
+    height, width, _ = matplotlib.image.imread(plot).shape
+    assert width > height > 100  # one panel, wider than tall

@@ -6,6 +6,11 @@ the final success rate, PAC-DP minus DP paired by seed, and the held-out NPE of 
 fewer seeds than the study's protocol says which seeds it has and gives no verdict.
 
     python -m lerobot_pacdp.study.overview results/study_cpu_v2*   # the README's at-a-glance table
+    python -m lerobot_pacdp.study.overview results/study_cpu_v2* --budget_plot=budgets.png   # and the plot
+
+The plot shows each method's final success against the budget, per (task, demos): where success stops
+changing with more steps (each budget is its own set of runs, its cosine decay spanning it), including
+budgets only some methods or seeds were trained at.
 """
 
 import argparse
@@ -32,6 +37,16 @@ TIE = 0.02  # one rollout of 50: a smaller mean difference in success is a tie
 
 
 @dataclass(frozen=True)
+class BudgetPoint:
+    """One method's final success at one budget of a (task, demos): mean and std (ddof=1) over its seeds."""
+
+    steps: int
+    mean: float
+    std: float
+    seeds: tuple[int, ...]
+
+
+@dataclass(frozen=True)
 class OverviewRow:
     """The final checkpoints of one (task, demos, budget), per method: success rates and NPEs by seed."""
 
@@ -50,6 +65,64 @@ class OverviewRow:
 
 def overview_rows(study_dirs: Sequence[Path]) -> list[OverviewRow]:
     """The rows of every study's summary.json; one (task, demos, steps) may come from one study only."""
+    rows = _all_rows(study_dirs)
+    return [row for row in rows if row.seeds]  # no seed finished by every method: nothing to compare yet
+
+
+def budget_points(study_dirs: Sequence[Path]) -> dict[tuple[str, int], dict[str, list[BudgetPoint]]]:
+    """Per (task, demos) and method, its final success at each budget over the seeds it has there."""
+    points: dict[tuple[str, int], dict[str, list[BudgetPoint]]] = defaultdict(lambda: defaultdict(list))
+    for row in _all_rows(study_dirs):
+        for method in METHODS:
+            by_seed = row.success.get(method, {})
+            if by_seed:
+                values = [by_seed[s] for s in sorted(by_seed)]
+                std = statistics.stdev(values) if len(values) > 1 else 0.0
+                point = BudgetPoint(row.steps, statistics.fmean(values), std, tuple(sorted(by_seed)))
+                points[(row.task, row.demos)][method].append(point)
+    return {key: dict(methods) for key, methods in points.items()}
+
+
+def plot_budgets(points: dict[tuple[str, int], dict[str, list[BudgetPoint]]], path: Path) -> None:
+    """One panel per (task, demos): final success against training steps per method, mean ± std over seeds;
+    a point with fewer seeds than the protocol is hollow and names its seeds."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(points), figsize=(4 * len(points), 3.6), squeeze=False, sharey=True)
+    for ax, ((task, demos), methods) in zip(axes[0], points.items(), strict=True):
+        for i, method in enumerate(METHODS):
+            line = sorted(methods.get(method, []), key=lambda p: p.steps)
+            if not line:
+                continue
+            steps = [p.steps for p in line]
+            ax.errorbar(steps, [p.mean for p in line], yerr=[p.std for p in line], color=f"C{i}", marker="o",
+                        capsize=3, label=method)  # fmt: skip
+            for p in line:
+                if len(p.seeds) < len(PAPER_SEEDS):
+                    ax.plot(p.steps, p.mean, "o", color="white", markeredgecolor=f"C{i}", markersize=7)
+                    ax.annotate(_seeds(p.seeds), (p.steps, p.mean), textcoords="offset points", xytext=(4, -12),
+                                fontsize=7, color=f"C{i}")  # fmt: skip
+        budgets = sorted({p.steps for line in methods.values() for p in line})
+        ax.set_xscale("log", base=2)  # the budgets double
+        ax.set_xticks(budgets, [f"{b // 1000}k" if b % 1000 == 0 else str(b) for b in budgets])
+        ax.minorticks_off()
+        ax.set_xlim(budgets[0] / 1.3, budgets[-1] * 1.3)
+        ax.set_title(f"{TASK_NAMES.get(task, task)}, {demos} demos")
+        ax.set_xlabel("training steps (budget)")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("final success rate")
+    axes[0][0].legend(loc="lower right")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _all_rows(study_dirs: Sequence[Path]) -> list[OverviewRow]:
+    """Every (task, demos, steps) of the studies, with whatever methods and seeds it has."""
     cells: dict[tuple[str, int, int], dict[str, dict]] = {}
     source: dict[tuple[str, int, int], Path] = {}
     for study in study_dirs:
@@ -64,8 +137,7 @@ def overview_rows(study_dirs: Sequence[Path]) -> list[OverviewRow]:
             cell["npe"][row["method"]][row["seed"]] = row["heldout_npe"]
     order = list(TASK_NAMES)
     keys = sorted(cells, key=lambda k: (order.index(k[0]) if k[0] in order else len(order), k))
-    rows = [OverviewRow(*key, dict(cells[key]["success"]), dict(cells[key]["npe"])) for key in keys]
-    return [row for row in rows if row.seeds]  # no seed finished by every method: nothing to compare yet
+    return [OverviewRow(*key, dict(cells[key]["success"]), dict(cells[key]["npe"])) for key in keys]
 
 
 def _mean(values: list[float], digits: int) -> str:
@@ -122,6 +194,7 @@ def render_overview(rows: list[OverviewRow]) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("studies", nargs="+", type=Path, help="published studies (with summary.json)")
+    parser.add_argument("--budget_plot", type=Path, help="also plot final success against the budget (PNG)")
     args = parser.parse_args(argv)
     missing = [str(s) for s in args.studies if not (s / "summary.json").is_file()]
     if missing:
@@ -130,6 +203,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         print(render_overview(overview_rows(args.studies)), end="")
+        if args.budget_plot is not None:
+            plot_budgets(budget_points(args.studies), args.budget_plot)
     except ValueError as error:
         print(error, file=sys.stderr)
         return 2
