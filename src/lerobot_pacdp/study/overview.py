@@ -97,12 +97,12 @@ def plot_budgets(points: dict[tuple[str, int], dict[str, list[BudgetPoint]]], pa
             line = sorted(methods.get(method, []), key=lambda p: p.steps)
             if not line:
                 continue
-            steps = [p.steps for p in line]
-            ax.errorbar(steps, [p.mean for p in line], yerr=[p.std for p in line], color=f"C{i}", marker="o",
-                        capsize=3, label=method)  # fmt: skip
+            full = [p for p in line if len(p.seeds) >= len(PAPER_SEEDS)]  # one line through comparable means
+            ax.errorbar([p.steps for p in full], [p.mean for p in full], yerr=[p.std for p in full], color=f"C{i}",
+                        marker="o", capsize=3, label=method)  # fmt: skip
             for p in line:
                 if len(p.seeds) < len(PAPER_SEEDS):
-                    ax.plot(p.steps, p.mean, "o", color="white", markeredgecolor=f"C{i}", markersize=7)
+                    ax.plot(p.steps, p.mean, "o", color=f"C{i}", markerfacecolor="white", markersize=7)
                     ax.annotate(_seeds(p.seeds), (p.steps, p.mean), textcoords="offset points", xytext=(4, -12),
                                 fontsize=7, color=f"C{i}")  # fmt: skip
         budgets = sorted({p.steps for line in methods.values() for p in line})
