@@ -65,8 +65,7 @@ class OverviewRow:
 
 def overview_rows(study_dirs: Sequence[Path]) -> list[OverviewRow]:
     """The rows of every study's summary.json; one (task, demos, steps) may come from one study only."""
-    rows = _all_rows(study_dirs)
-    return [row for row in rows if row.seeds]  # no seed finished by every method: nothing to compare yet
+    return [row for row in _all_rows(study_dirs) if row.seeds]  # no seed finished by every method: no row yet
 
 
 def budget_points(study_dirs: Sequence[Path]) -> dict[tuple[str, int], dict[str, list[BudgetPoint]]]:
@@ -106,7 +105,7 @@ def plot_budgets(points: dict[tuple[str, int], dict[str, list[BudgetPoint]]], pa
                     ax.annotate(_seeds(p.seeds), (p.steps, p.mean), textcoords="offset points", xytext=(4, -12),
                                 fontsize=7, color=f"C{i}")  # fmt: skip
         budgets = sorted({p.steps for line in methods.values() for p in line})
-        ax.set_xscale("log", base=2)  # the budgets double
+        ax.set_xscale("log", base=2)  # budgets from 3000 to 60000 steps, most of them doubling
         ax.set_xticks(budgets, [f"{b // 1000}k" if b % 1000 == 0 else str(b) for b in budgets])
         ax.minorticks_off()
         ax.set_xlim(budgets[0] / 1.3, budgets[-1] * 1.3)
