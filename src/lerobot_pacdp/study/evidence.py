@@ -126,8 +126,10 @@ def render_evidence(summary: list[dict], comparisons: list[PairedComparison]) ->
         counts = ", ".join(f"s{r['seed']}: {r['successes']}/{r['n_episodes']}" for r in rows if r["successes"] is not None)
         lines.append(f"| {task} | {demos} | {method} | {_cell(rates, 3)} | {_cell(scores, 3)} | {_cell(npes, 4)} "
                      f"| {_cell(nlls, 3)} | {_cell(papers, 3)} | {counts} |")  # fmt: skip
-    lines += ["", "## PAC-DP vs DP, paired by (demos, seed): exact two-sided sign-flip test", "",
-              "| task | metric | pairs | mean PAC-DP − DP | PAC-DP better / tie / DP better | p |",
+    lines += ["", "## PAC-DP vs DP, paired by (demos, seed): exact two-sided sign-flip test", ""]
+    if not comparisons:  # e.g. a study of PAC-DP alone (--methods)
+        return "\n".join([*lines, "No (demos, seed) has both a PAC-DP and a DP run: nothing to pair."]) + "\n"
+    lines += ["| task | metric | pairs | mean PAC-DP − DP | PAC-DP better / tie / DP better | p |",
               "|---|---|---|---|---|---|"]  # fmt: skip
     for c in comparisons:
         lines.append(f"| {c.task} | {c.metric} | {c.pairs} | {c.mean_difference:+.4f} | "
