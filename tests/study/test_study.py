@@ -411,32 +411,56 @@ def test_unfinished_runs_are_reported_only_when_asked(tmp_path, monkeypatch):
     assert sweep.episodes == list(specs[0].heldout_episodes)
 
 
-def test_a_later_call_over_other_demos_keeps_the_earlier_runs_metrics_rows_of_the_same_settings(tmp_path, monkeypatch):
+def _finished_runs_of_2_and_3_demos(tmp_path, monkeypatch, kills: list[str]):
+    """Six finished runs (2 and 3 demos, seed 0) and a stand-in for run_sweep that, like it, writes metrics.json
+    with the settings and the swept runs' rows only, then raises KeyboardInterrupt while `kills` has an entry.
+    Returns the preset, the 2- and 3-demo runs, and the labels metrics.json holds."""
     monkeypatch.setattr(executors, "POLL_S", 0.05)
     preset = dataclasses.replace(_tiny_preset(demos=(2, 3), seeds=(0,)), success_episodes=0)
     specs = plan_task(preset.tasks[0], preset, num_episodes=8)
     _write_requests(specs, preset, tmp_path)
     _local(preset, tmp_path).run(specs)
 
-    def fake_sweep(cfg):  # as run_sweep: metrics.json gets the settings and the swept runs' rows only
+    def fake_sweep(cfg):
         rows = [{"label": label, "run": str(run), "checkpoint": f"{run}/6", "step": 6, "npe": 0.1}
                 for run, label in zip(cfg.runs, cfg.labels, strict=True)]  # fmt: skip
         write_json_atomic(cfg.output_dir / "metrics.json", {"settings": {"nll_steps": cfg.nll_steps}, "rows": rows})
+        if kills:
+            raise KeyboardInterrupt(kills.pop())
         return rows, {}
 
     monkeypatch.setattr(evaluation, "run_sweep", fake_sweep)
-    two, three = [s for s in specs if s.demos == 2], [s for s in specs if s.demos == 3]
     metrics_file = evaluation.metrics_dir(tmp_path, specs[0].group, specs[0].task, 0) / "metrics.json"
 
     def stored_labels() -> list[str]:
         return sorted(row["label"] for row in json.loads(metrics_file.read_text())["rows"])
 
+    two, three = [s for s in specs if s.demos == 2], [s for s in specs if s.demos == 3]
+    return preset, two, three, stored_labels
+
+
+def test_a_later_call_over_other_demos_keeps_the_earlier_runs_metrics_rows_of_the_same_settings(tmp_path, monkeypatch):
+    preset, two, three, stored_labels = _finished_runs_of_2_and_3_demos(tmp_path, monkeypatch, kills=[])
     assert len(two) == len(three) == 3
     evaluation.evaluate_runs(preset, two, tmp_path)
     assert [row["demos"] for row in evaluation.evaluate_runs(preset, three, tmp_path)] == [3, 3, 3]
-    assert stored_labels() == sorted(s.name for s in specs)
+    assert stored_labels() == sorted(s.name for s in two + three)
     evaluation.evaluate_runs(dataclasses.replace(preset, nll_steps=None), two, tmp_path)  # other settings
     assert stored_labels() == sorted(s.name for s in two)
+
+
+def test_a_metrics_pass_killed_mid_sweep_leaves_the_other_runs_rows_to_the_next_pass(tmp_path, monkeypatch):
+    kills = []
+    preset, two, three, stored_labels = _finished_runs_of_2_and_3_demos(tmp_path, monkeypatch, kills)
+    evaluation.evaluate_runs(preset, two, tmp_path)
+    kills.append("Ctrl-C while sweeping the 3-demo runs")
+    with pytest.raises(KeyboardInterrupt):
+        evaluation.evaluate_runs(preset, three, tmp_path)
+    assert stored_labels() == sorted(s.name for s in three)  # what the killed sweep left in metrics.json
+    evaluation.evaluate_runs(preset, three, tmp_path)
+    assert stored_labels() == sorted(s.name for s in two + three)  # the 2-demo runs' rows are back
+    directory = evaluation.metrics_dir(tmp_path, two[0].group, two[0].task, 0)
+    assert sorted(p.name for p in directory.iterdir()) == ["metrics.json"]  # no backup left behind
 
 
 def _record_rollouts(monkeypatch) -> list[str]:

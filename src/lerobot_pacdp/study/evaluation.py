@@ -85,9 +85,15 @@ def _sweep_rows(preset: Preset, ready: list[RunSpec], directory: Path, output_di
         last_k=preset.last_k,
         device=preset.device,
     )
-    previous = _read_json(directory / "metrics.json")
+    metrics_file, backup = directory / "metrics.json", directory / "metrics.before_sweep.json"
+    if backup.is_file():  # a pass killed mid-sweep: the rows of the runs it was not sweeping are only here
+        _merge_stored(metrics_file, _read_json(backup))
+    previous = _read_json(metrics_file)
+    if previous is not None:
+        write_json_atomic(backup, previous)
     swept, _ = run_sweep(sweep)  # rewrites metrics.json with the swept runs' rows only
-    _merge_stored(directory / "metrics.json", previous)
+    _merge_stored(metrics_file, previous)
+    backup.unlink(missing_ok=True)
     return swept
 
 
