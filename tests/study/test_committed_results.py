@@ -18,7 +18,6 @@ from lerobot_pacdp.study.presets import get_preset
 from pacdp_testing import REPO_ROOT
 
 RESULTS = REPO_ROOT / "results"
-ALL_METHODS = set(METHODS)
 
 
 def _study_from_committed(committed: Path, out: Path, group: str) -> None:
@@ -62,23 +61,22 @@ def test_the_committed_tables_regenerate_from_their_metrics_files(tmp_path, push
 
 
 @pytest.mark.parametrize(
-    ("study", "flags", "methods"),
+    ("study", "flags"),
     [
-        ("study_cpu_v2", [], ALL_METHODS),
+        ("study_cpu_v2", []),
         # benchmarks/study_cpu_v2.sh with STEPS=6000 SUCCESS_EVERY=2000 (20 and 40 demos)
-        ("study_cpu_v2_steps6000", ["--steps=6000", "--save_freq=1000", "--success_every=2000"], ALL_METHODS),
+        ("study_cpu_v2_steps6000", ["--steps=6000", "--save_freq=1000", "--success_every=2000"]),
         # STEPS=12000 SUCCESS_EVERY=4000 (20 and 40 demos)
-        ("study_cpu_v2_steps12000", ["--steps=12000", "--save_freq=1000", "--success_every=4000"], ALL_METHODS),
+        ("study_cpu_v2_steps12000", ["--steps=12000", "--save_freq=1000", "--success_every=4000"]),
         # STEPS=24000 SUCCESS_EVERY=8000 DEMOS=20
-        ("study_cpu_v2_steps24000", ["--steps=24000", "--save_freq=1000", "--success_every=8000"], ALL_METHODS),
+        ("study_cpu_v2_steps24000", ["--steps=24000", "--save_freq=1000", "--success_every=8000"]),
         # STEPS=40000 SUCCESS_EVERY=10000 DEMOS=20 (Can)
-        ("study_cpu_v2_steps40000", ["--steps=40000", "--save_freq=1000", "--success_every=10000"], ALL_METHODS),
+        ("study_cpu_v2_steps40000", ["--steps=40000", "--save_freq=1000", "--success_every=10000"]),
         # STEPS=60000 SUCCESS_EVERY=10000 (Can, seed 0: PAC-DP with 20 and 40 demos, DP and BDP with 20)
-        ("study_cpu_v2_steps60000", ["--steps=60000", "--save_freq=1000", "--success_every=10000"], ALL_METHODS),
+        ("study_cpu_v2_steps60000", ["--steps=60000", "--save_freq=1000", "--success_every=10000"]),
     ],
 )
-def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_files(tmp_path, request, study, flags,
-                                                                                    methods):
+def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_files(tmp_path, request, study, flags):
     """results/study_cpu_v2* commit each (task, seed)'s metrics.json and success.json as the study keeps them;
     `--published_metrics` brings them into an empty output dir (PushT's held-out split needs its demos)."""
     committed = RESULTS / study
@@ -91,5 +89,5 @@ def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_f
     for name in ("summary.json", "paired.json", "evidence.md", "runs.csv", "dynamics.csv", "tables.csv"):
         assert (tmp_path / "results" / name).read_text() == (committed / name).read_text(), name
     rows = json.loads((committed / "summary.json").read_text())
-    assert {r["method"] for r in rows} == methods
+    assert {r["method"] for r in rows} == set(METHODS)
     assert all(r["n_episodes"] >= 50 and r["success_rate"] is not None for r in rows)

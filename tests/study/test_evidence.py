@@ -108,13 +108,13 @@ def test_paired_comparison_matches_runs_by_demos_and_seed():
     assert "| 1.000 ± 0.000 (n=3) | 0.500 ± 0.000 (n=3) | s0: 8/10, s1: 6/10, s2: 7/10 |" in markdown
 
 
-
 def test_a_study_without_dp_says_there_is_nothing_to_pair_instead_of_an_empty_table():
     summary = final_rows([_row("PAC-DP", 0, 1, 0.90, 0.25)], n_episodes=10, references=REFERENCES)
     assert paired_comparisons(summary) == []
     markdown = render_evidence(summary, [])
     assert markdown.endswith("No (demos, seed) has both a PAC-DP and a DP run: nothing to pair.\n")
     assert "| task | metric | pairs |" not in markdown
+
 
 def test_success_checkpoints_are_the_last_k_and_every_kth_step_in_step_order():
     rows = [{"checkpoint": f"c{step}", "step": step} for step in (3000, 500, 1000, 1500, 2000, 2500)]
