@@ -72,7 +72,7 @@ def test_the_committed_tables_regenerate_from_their_metrics_files(tmp_path, push
         ("study_cpu_v2_steps24000", ["--steps=24000", "--save_freq=1000", "--success_every=8000"]),
         # STEPS=40000 SUCCESS_EVERY=10000 DEMOS=20 (Can)
         ("study_cpu_v2_steps40000", ["--steps=40000", "--save_freq=1000", "--success_every=10000"]),
-        # STEPS=60000 SUCCESS_EVERY=10000 (Can: seeds 0, 1 and 2 with 20 demos, seeds 0 and 1 with 40)
+        # STEPS=60000 SUCCESS_EVERY=10000 (Can: seeds 0, 1 and 2 with 20 and with 40 demos)
         ("study_cpu_v2_steps60000", ["--steps=60000", "--save_freq=1000", "--success_every=10000"]),
     ],
 )
