@@ -74,6 +74,8 @@ def test_the_committed_tables_regenerate_from_their_metrics_files(tmp_path, push
         ("study_cpu_v2_steps40000", ["--steps=40000", "--save_freq=1000", "--success_every=10000"]),
         # STEPS=60000 SUCCESS_EVERY=10000 (Can: seeds 0, 1 and 2 with 20 and with 40 demos)
         ("study_cpu_v2_steps60000", ["--steps=60000", "--save_freq=1000", "--success_every=10000"]),
+        # STEPS=80000 SUCCESS_EVERY=10000 DEMOS=20 METHODS=PAC-DP (Can, seed 0: does PAC-DP's plateau hold)
+        ("study_cpu_v2_steps80000", ["--steps=80000", "--save_freq=1000", "--success_every=10000", "--methods=[PAC-DP]"]),
     ],
 )
 def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_files(tmp_path, request, study, flags):
@@ -89,5 +91,7 @@ def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_f
     for name in ("summary.json", "paired.json", "evidence.md", "runs.csv", "dynamics.csv", "tables.csv"):
         assert (tmp_path / "results" / name).read_text() == (committed / name).read_text(), name
     rows = json.loads((committed / "summary.json").read_text())
-    assert {r["method"] for r in rows} == set(METHODS)
+    methods = next((f.removeprefix("--methods=[")[:-1].split(",") for f in flags if f.startswith("--methods=")),
+                   METHODS)  # fmt: skip
+    assert {r["method"] for r in rows} == set(methods)
     assert all(r["n_episodes"] >= 50 and r["success_rate"] is not None for r in rows)
