@@ -61,26 +61,25 @@ def test_the_committed_tables_regenerate_from_their_metrics_files(tmp_path, push
 
 
 @pytest.mark.parametrize(
-    ("study", "flags", "methods"),
+    ("study", "flags"),
     [
-        ("study_cpu_v2", [], METHODS),
+        ("study_cpu_v2", []),
         # benchmarks/study_cpu_v2.sh with STEPS=6000 SUCCESS_EVERY=2000 (20 and 40 demos)
-        ("study_cpu_v2_steps6000", ["--steps=6000", "--save_freq=1000", "--success_every=2000"], METHODS),
+        ("study_cpu_v2_steps6000", ["--steps=6000", "--save_freq=1000", "--success_every=2000"]),
         # STEPS=12000 SUCCESS_EVERY=4000 (20 and 40 demos)
-        ("study_cpu_v2_steps12000", ["--steps=12000", "--save_freq=1000", "--success_every=4000"], METHODS),
+        ("study_cpu_v2_steps12000", ["--steps=12000", "--save_freq=1000", "--success_every=4000"]),
         # STEPS=24000 SUCCESS_EVERY=8000 DEMOS=20
-        ("study_cpu_v2_steps24000", ["--steps=24000", "--save_freq=1000", "--success_every=8000"], METHODS),
+        ("study_cpu_v2_steps24000", ["--steps=24000", "--save_freq=1000", "--success_every=8000"]),
         # STEPS=40000 SUCCESS_EVERY=10000 DEMOS=20 (Can)
-        ("study_cpu_v2_steps40000", ["--steps=40000", "--save_freq=1000", "--success_every=10000"], METHODS),
+        ("study_cpu_v2_steps40000", ["--steps=40000", "--save_freq=1000", "--success_every=10000"]),
         # STEPS=60000 SUCCESS_EVERY=10000 (Can: seeds 0, 1 and 2 with 20 and with 40 demos)
-        ("study_cpu_v2_steps60000", ["--steps=60000", "--save_freq=1000", "--success_every=10000"], METHODS),
-        # STEPS=80000 SUCCESS_EVERY=10000 DEMOS=20 METHODS=PAC-DP (Can, seed 0: does PAC-DP's plateau hold)
-        ("study_cpu_v2_steps80000", ["--steps=80000", "--save_freq=1000", "--success_every=10000", "--methods=[PAC-DP]"],
-         ("PAC-DP",)),
+        ("study_cpu_v2_steps60000", ["--steps=60000", "--save_freq=1000", "--success_every=10000"]),
+        # STEPS=80000 SUCCESS_EVERY=10000 DEMOS=20 (Can, seed 0: does PAC-DP's plateau hold)
+        ("study_cpu_v2_steps80000", ["--steps=80000", "--save_freq=1000", "--success_every=10000"]),
     ],
 )
 def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_files(
-    tmp_path, request, study, flags, methods
+    tmp_path, request, study, flags
 ):
     """results/study_cpu_v2* commit each (task, seed)'s metrics.json and success.json as the study keeps them;
     `--published_metrics` brings them into an empty output dir (PushT's held-out split needs its demos)."""
@@ -94,5 +93,5 @@ def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_f
     for name in ("summary.json", "paired.json", "evidence.md", "runs.csv", "dynamics.csv", "tables.csv"):
         assert (tmp_path / "results" / name).read_text() == (committed / name).read_text(), name
     rows = json.loads((committed / "summary.json").read_text())
-    assert {r["method"] for r in rows} == set(methods)
+    assert {r["method"] for r in rows} == set(METHODS)
     assert all(r["n_episodes"] >= 50 and r["success_rate"] is not None for r in rows)
