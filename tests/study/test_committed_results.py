@@ -78,9 +78,7 @@ def test_the_committed_tables_regenerate_from_their_metrics_files(tmp_path, push
         ("study_cpu_v2_steps80000", ["--steps=80000", "--save_freq=1000", "--success_every=10000"]),
     ],
 )
-def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_files(
-    tmp_path, request, study, flags
-):
+def test_the_committed_evidence_study_regenerates_from_its_metrics_and_success_files(tmp_path, request, study, flags):
     """results/study_cpu_v2* commit each (task, seed)'s metrics.json and success.json as the study keeps them;
     `--published_metrics` brings them into an empty output dir (PushT's held-out split needs its demos)."""
     committed = RESULTS / study
