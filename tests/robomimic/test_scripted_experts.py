@@ -1,6 +1,10 @@
 """Scripted experts and the robomimic-format files they write."""
 
 import json
+import os
+import platform
+import subprocess
+import sys
 
 import h5py
 import numpy as np
@@ -82,16 +86,16 @@ def test_recorded_can_observations_are_what_the_environment_observes():
         env.close()
 
 
-def test_cli_writes_a_file_and_reports_the_success_rate(tmp_path, capsys):
+def test_cli_writes_a_file_and_reports_the_success_rate(tmp_path, capfd):  # capfd: a child process may record
     out = tmp_path / "demos.hdf5"
     argv = ["--task=lift", "--num_demos=2", f"--output={out}", "--seed=1", "--action_noise=0.02"]
     assert scripted_experts.main(argv) == 0
-    assert "lift: 2/2 successful episodes (100%)" in capsys.readouterr().out
+    assert "lift: 2/2 successful episodes (100%)" in capfd.readouterr().out
     with h5py.File(out, "r") as f:
         assert sorted(f["data"].keys()) == ["demo_0", "demo_1"]
         assert json.loads(f["data"].attrs["scripted_expert"])["action_noise"] == 0.02
     assert scripted_experts.main(argv) == 2  # exists, no --overwrite
-    assert "already exists" in capsys.readouterr().err
+    assert "already exists" in capfd.readouterr().err
 
 
 @pytest.mark.parametrize(
@@ -110,3 +114,52 @@ def test_cli_bad_input_exits_2(tmp_path, capsys, argv, message):
     err = capsys.readouterr().err
     assert err.startswith("pacdp-scripted-demos: error:") and message in err and "Traceback" not in err
     assert not (tmp_path / "x.hdf5").exists()
+
+
+def test_recording_is_pinned_to_openblas_haswell_kernels_where_the_cpu_runs_them(monkeypatch):
+    from numpy._core._multiarray_umath import __cpu_features__ as cpu
+
+    monkeypatch.setitem(cpu, "AVX2", True)
+    monkeypatch.setitem(cpu, "FMA3", True)
+    monkeypatch.setattr(platform, "machine", lambda: "x86_64")
+    monkeypatch.setenv("OPENBLAS_CORETYPE", "Sandybridge")
+    env = scripted_experts.blas_pinned_environment()
+    assert env is not None and env["OPENBLAS_CORETYPE"] == "Haswell" and env["PATH"] == os.environ["PATH"]
+    monkeypatch.setenv("OPENBLAS_CORETYPE", "Haswell")
+    assert scripted_experts.blas_pinned_environment() is None  # already pinned: record in this process
+    monkeypatch.delenv("OPENBLAS_CORETYPE")
+    monkeypatch.setitem(cpu, "AVX2", False)
+    assert scripted_experts.blas_pinned_environment() is None  # a CPU without AVX2 cannot run Haswell's kernels
+    monkeypatch.setitem(cpu, "AVX2", True)
+    monkeypatch.setattr(platform, "machine", lambda: "aarch64")
+    assert scripted_experts.blas_pinned_environment() is None  # no x86 kernels to pin
+
+
+def _demo_arrays(path) -> dict[str, np.ndarray]:
+    with h5py.File(path) as f:
+        return {k: f["data/demo_0"][k][()] for k in ("actions", "states")}
+
+
+def _record(out, coretype: str, code: str) -> None:
+    env = {**os.environ, "OPENBLAS_CORETYPE": coretype, "OMP_NUM_THREADS": "1"}
+    subprocess.run([sys.executable, "-c", code, "--task=can", "--num_demos=1", f"--output={out}",
+                    "--action_noise=0.05"], env=env, check=True, capture_output=True)  # fmt: skip
+
+
+_RUNS_HASWELL_KERNELS = os.environ.get("OPENBLAS_CORETYPE") == "Haswell" or scripted_experts.blas_pinned_environment()
+
+
+@pytest.mark.skipif(not _RUNS_HASWELL_KERNELS, reason="OpenBLAS's Haswell kernels need an x86-64 CPU with AVX2 and FMA")
+def test_the_command_records_the_same_can_demo_whatever_openblas_kernels_the_machine_picks(tmp_path):
+    command = "import sys; from lerobot_pacdp.robomimic.scripted_experts import main; sys.exit(main())"
+    unpinned = ("import sys; from lerobot_pacdp.robomimic import scripted_experts as s; "
+                "s.blas_pinned_environment = lambda: None; sys.exit(s.main())")  # fmt: skip
+    for name, coretype, code in [("haswell", "Haswell", command), ("sandybridge", "Sandybridge", command),
+                                 ("sandybridge_unpinned", "Sandybridge", unpinned)]:  # fmt: skip
+        _record(tmp_path / f"{name}.hdf5", coretype, code)
+    haswell, sandybridge = _demo_arrays(tmp_path / "haswell.hdf5"), _demo_arrays(tmp_path / "sandybridge.hdf5")
+    unpinned_demo = _demo_arrays(tmp_path / "sandybridge_unpinned.hdf5")
+    # Sandybridge's kernels, left to run, record another demo; the command records Haswell's demo under them.
+    assert not np.array_equal(unpinned_demo["states"], haswell["states"])
+    for key in ("actions", "states"):
+        np.testing.assert_array_equal(sandybridge[key], haswell[key])

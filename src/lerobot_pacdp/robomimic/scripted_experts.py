@@ -9,14 +9,20 @@ noise (on the arm dimensions) makes the demonstrations diverse; only successful 
 
 The output has the schema of the released robomimic `low_dim.hdf5` files (recorded with robosuite 1.5,
 so convert it and evaluate with the native layout, `--env.robosuite_compat=1.5`, the default).
+
+The same seed records the same demos on every x86-64 machine: the command records with OpenBLAS's Haswell
+kernels whatever CPU it runs on (see `blas_pinned_environment`).
 """
 
 import json
 import math
+import os
+import platform
+import subprocess
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -411,6 +417,21 @@ def env_args_for(task: RobomimicTask, env) -> dict:
             "env_kwargs": env_kwargs}  # fmt: skip
 
 
+def _expert_task(task: str, num_demos: int, action_noise: float) -> RobomimicTask:
+    """The task of a collection, once its inputs are checked (a one-line error for each bad one)."""
+    robomimic_task = get_task(task)
+    if robomimic_task.name not in EXPERTS:
+        raise UserInputError(
+            f"no scripted expert for {robomimic_task.name!r}; scripted experts exist for {', '.join(EXPERTS)} "
+            "(Transport and ToolHang need the released human demos)."
+        )
+    if num_demos < 1:
+        raise UserInputError(f"--num_demos must be >= 1, got {num_demos}.")
+    if action_noise < 0:
+        raise UserInputError(f"--action_noise must be >= 0, got {action_noise}.")
+    return robomimic_task
+
+
 def collect_demos(
     task: str,
     num_demos: int,
@@ -425,16 +446,7 @@ def collect_demos(
 
     from lerobot_pacdp.robomimic.env import RobomimicEnv
 
-    robomimic_task = get_task(task)
-    if robomimic_task.name not in EXPERTS:
-        raise UserInputError(
-            f"no scripted expert for {robomimic_task.name!r}; scripted experts exist for {', '.join(EXPERTS)} "
-            "(Transport and ToolHang need the released human demos)."
-        )
-    if num_demos < 1:
-        raise UserInputError(f"--num_demos must be >= 1, got {num_demos}.")
-    if action_noise < 0:
-        raise UserInputError(f"--action_noise must be >= 0, got {action_noise}.")
+    robomimic_task = _expert_task(task, num_demos, action_noise)
     max_attempts = max_attempts or 3 * num_demos
     env = RobomimicEnv(robomimic_task.name, render_mode=None)
     expert = EXPERTS[robomimic_task.name](env.robosuite_env, np.random.default_rng(seed), action_noise)
@@ -496,15 +508,43 @@ class ScriptedDemosConfig:
     overwrite: bool = False  # replace an existing output file
 
 
+# OpenBLAS picks its kernels by CPU when numpy loads it (Haswell's on AVX2 machines, SkylakeX's on AVX-512 ones),
+# and the controllers' closed loop turns their last-bit differences into other demos: one seed's 60 Can demos
+# differed in length on two machines. Haswell's kernels run on every AVX2 + FMA CPU.
+BLAS_CORETYPE = "Haswell"
+
+
+def blas_pinned_environment() -> dict[str, str] | None:
+    """The environment to record in so that every x86-64 machine records the same demos, or None where this
+    process already runs OpenBLAS's `BLAS_CORETYPE` kernels (or the CPU cannot run them)."""
+    if os.environ.get("OPENBLAS_CORETYPE") == BLAS_CORETYPE or platform.machine().lower() not in ("x86_64", "amd64"):
+        return None
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__ as cpu
+    except ImportError:  # another numpy layout: record with whatever OpenBLAS chose
+        return None
+    if not (cpu.get("AVX2") and cpu.get("FMA3")):
+        return None
+    return {**os.environ, "OPENBLAS_CORETYPE": BLAS_CORETYPE}
+
+
 def record_scripted_demos(cfg: ScriptedDemosConfig) -> int:
-    """Record `cfg.num_demos` successful expert episodes into `cfg.output` and print what was recorded."""
+    """Record `cfg.num_demos` successful expert episodes into `cfg.output` and print what was recorded. OpenBLAS
+    reads its core type once, when numpy loads it, so a process without the pinned one records in a child."""
     if cfg.task is None or cfg.num_demos is None or cfg.output is None:
         raise UserInputError(f"pass --task=<{'|'.join(EXPERTS)}> --num_demos=N --output=FILE.hdf5.")
-    task = get_task(cfg.task)
+    task = _expert_task(cfg.task, cfg.num_demos, cfg.action_noise)
     if cfg.output.exists() and not cfg.overwrite:
         raise UserInputError(f"{cfg.output} already exists; choose another --output or pass --overwrite=true.")
     if not 0.0 <= cfg.valid_fraction < 1.0:
         raise UserInputError(f"--valid_fraction must be in [0, 1), got {cfg.valid_fraction}.")
+    if (env := blas_pinned_environment()) is not None:
+        flags = [f"--{f.name}={str(v).lower() if isinstance(v, bool) else v}"
+                 for f in fields(cfg) if (v := getattr(cfg, f.name)) is not None]  # fmt: skip
+        code = subprocess.run([sys.executable, "-m", __spec__.name, *flags], env=env).returncode
+        if code != 0:
+            raise UserInputError(f"recording with OpenBLAS's {BLAS_CORETYPE} kernels failed (exit {code}; see above).")
+        return 0
     demos, stats, env_args = collect_demos(
         task.name, cfg.num_demos, cfg.seed, cfg.action_noise, cfg.max_attempts, progress=True
     )
