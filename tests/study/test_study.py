@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import math
+import shutil
 import sys
 from pathlib import Path
 
@@ -574,3 +575,30 @@ def test_a_run_stopped_by_sigterm_is_paused_not_failed_and_resumes(tmp_path, mon
     assert outcome.paused == (spec,) and not outcome.failed and run_state(spec, tmp_path) == ("resume", 2)
     monkeypatch.delenv("FAKE_TRAINER_KILL_AT")
     assert _local(preset, tmp_path).run([spec]).done == (spec,)
+
+
+def test_runs_of_one_seed_trained_on_other_recordings_of_the_demos_are_refused(tmp_path, monkeypatch):
+    preset, two, _, _ = _finished_runs_of_2_and_3_demos(tmp_path, monkeypatch, kills=[])
+    evaluation.evaluate_runs(preset, two, tmp_path)
+    fake_sweep = evaluation.run_sweep
+
+    def sweep_with_window_counts(cfg):
+        rows, extra = fake_sweep(cfg)
+        return [row | {"npe_episode_counts": [3, 4]} for row in rows], extra
+
+    monkeypatch.setattr(evaluation, "run_sweep", sweep_with_window_counts)
+    published = two[0]  # its checkpoints gone: reported from its stored row, as if trained in another checkout
+    shutil.rmtree(published.train_dir(tmp_path) / "checkpoints")
+    metrics_file = evaluation.metrics_dir(tmp_path, published.group, published.task, 0) / "metrics.json"
+
+    def store_counts(counts: list[int]) -> None:
+        stored = json.loads(metrics_file.read_text())
+        for row in stored["rows"]:
+            row["npe_episode_counts"] = counts if row["label"] == published.name else row.get("npe_episode_counts")
+        metrics_file.write_text(json.dumps(stored))
+
+    store_counts([3, 5])  # the last held-out episode one window longer: another recording
+    with pytest.raises(StudyError, match="other recordings of the demos"):
+        evaluation.evaluate_runs(preset, two, tmp_path)
+    store_counts([3, 4])
+    assert sorted(row["name"] for row in evaluation.evaluate_runs(preset, two, tmp_path)) == sorted(s.name for s in two)

@@ -21,7 +21,7 @@ import draccus
 from lerobot_pacdp.metrics.checkpoints import load_policy
 from lerobot_pacdp.metrics.sweep import RolloutOutcome, SweepConfig, rollout_outcome, run_sweep
 from lerobot_pacdp.study.plan import RunSpec
-from lerobot_pacdp.study.presets import Preset
+from lerobot_pacdp.study.presets import Preset, StudyError
 from lerobot_pacdp.study.state import run_state, write_json_atomic
 from lerobot_pacdp.train_runs import step_dirs
 
@@ -97,6 +97,17 @@ def _sweep_rows(preset: Preset, ready: list[RunSpec], directory: Path, output_di
     return swept
 
 
+def check_same_demos(swept: list[dict], stored: list[dict], where: str) -> None:
+    """The runs of one seed swept here and those reported from stored rows (trained in another checkout) must
+    have trained on the same demos: their held-out window counts, which follow from the demos' lengths, agree
+    (another recording of scripted demos, e.g. before OpenBLAS's kernels were pinned, has other lengths)."""
+    counts = {tuple(row["npe_episode_counts"]) for row in swept + stored if row.get("npe_episode_counts")}
+    if len(counts) > 1:
+        raise StudyError(f"{where}: the runs here and the stored (published) ones held out windows of other lengths, "
+                         "so they trained on other recordings of the demos; train the stored runs here too, or "
+                         "record the demos with the pacdp-scripted-demos those runs used.")  # fmt: skip
+
+
 def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfinished: bool = False) -> list[dict]:
     """One row per checkpoint of every finished run (the sweep's columns plus the run's spec); with
     `unfinished`, also of runs stopped before their last step, up to their last checkpoint."""
@@ -115,6 +126,7 @@ def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfini
         elsewhere = {s.name for s in runs if s not in on_disk}
         if stored := _stored_rows(directory, elsewhere):
             logger.info("metrics: %d rows of runs with no checkpoint on disk from %s", len(stored), directory)
+            check_same_demos(group_rows, stored, f"{task} seed {seed}")
         group_rows += stored
         if not group_rows:
             continue
