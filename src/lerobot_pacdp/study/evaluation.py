@@ -97,7 +97,7 @@ def _sweep_rows(preset: Preset, ready: list[RunSpec], directory: Path, output_di
     return swept
 
 
-def check_same_demos(swept: list[dict], stored: list[dict], where: str) -> None:
+def _check_same_demos(swept: list[dict], stored: list[dict], where: str) -> None:
     """The runs of one seed swept here and those reported from stored rows (trained in another checkout) must
     have trained on the same demos: their held-out window counts, which follow from the demos' lengths, agree
     (another recording of scripted demos, e.g. before OpenBLAS's kernels were pinned, has other lengths)."""
@@ -126,7 +126,7 @@ def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfini
         elsewhere = {s.name for s in runs if s not in on_disk}
         if stored := _stored_rows(directory, elsewhere):
             logger.info("metrics: %d rows of runs with no checkpoint on disk from %s", len(stored), directory)
-            check_same_demos(group_rows, stored, f"{task} seed {seed}")
+            _check_same_demos(group_rows, stored, f"{task} seed {seed}")
         group_rows += stored
         if not group_rows:
             continue
