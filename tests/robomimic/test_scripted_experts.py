@@ -146,7 +146,8 @@ def _record(out, coretype: str, code: str) -> None:
                     "--action_noise=0.05"], env=env, check=True, capture_output=True)  # fmt: skip
 
 
-_RUNS_HASWELL_KERNELS = os.environ.get("OPENBLAS_CORETYPE") == "Haswell" or scripted_experts.blas_pinned_environment() is not None
+_RUNS_HASWELL_KERNELS = (os.environ.get("OPENBLAS_CORETYPE") == "Haswell"
+                         or scripted_experts.blas_pinned_environment() is not None)
 
 
 @pytest.mark.skipif(not _RUNS_HASWELL_KERNELS, reason="OpenBLAS's Haswell kernels need an x86-64 CPU with AVX2 and FMA")
