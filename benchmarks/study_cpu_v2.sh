@@ -43,7 +43,8 @@ tasks=$( { find "$out/runs" "$out/metrics/main" "$dest/metrics/main" -mindepth 1
 "${study[@]}" --tasks="[$tasks]" --train=false "${published[@]}"
 rm -rf "$dest.tmp" && mkdir -p "$dest.tmp"
 cp -r "$out/results/." "$dest.tmp/"
-(cd "$out" && find metrics/main -name metrics.json -o -name success.json) | while read -r f; do
+(cd "$out" && find metrics/main -name metrics.json -o -name success.json -o -name datasets.json) |
+while read -r f; do
   mkdir -p "$dest.tmp/$(dirname "$f")" && cp "$out/$f" "$dest.tmp/$f"
 done
 [ -f "$dest/README.md" ] && cp "$dest/README.md" "$dest.tmp/"  # the hand-written notes stay

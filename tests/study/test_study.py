@@ -14,7 +14,14 @@ from lerobot_pacdp.study import evaluation, executors, runner, tables
 from lerobot_pacdp.study.executors import LocalExecutor
 from lerobot_pacdp.study.plan import RunSpec, plan_task, split_episodes, train_config
 from lerobot_pacdp.study.presets import Preset, StudyError, TaskPreset, get_preset, with_overrides
-from lerobot_pacdp.study.state import DONE_FILE, LOG_FILE, REQUEST_FILE, run_state, write_json_atomic
+from lerobot_pacdp.study.state import (
+    DATASET_FILE,
+    DONE_FILE,
+    LOG_FILE,
+    REQUEST_FILE,
+    run_state,
+    write_json_atomic,
+)
 from lerobot_pacdp.train_runs import final_checkpoint, step_dirs
 
 from fake_trainer import write_checkpoint
@@ -555,6 +562,8 @@ def test_adopting_a_published_study_adds_the_rows_and_rates_of_runs_the_cache_la
     write(published / seed / "success.json",
           {"settings": {"episodes": 50}, "rates": {"/a/6": 0.9, "/b/6": 0.75}, "scores": {"/b/6": 0.8}})  # fmt: skip
     write(published / "main" / "lift" / "seed2" / "metrics.json", {"settings": {}, "rows": rows(d020=0.3)})
+    write(out / "metrics" / seed / "datasets.json", {"fingerprints": {"d040": "aa"}})
+    write(published / seed / "datasets.json", {"fingerprints": {"d040": "ff", "d020": "bb"}})
     write(out / "metrics" / "main" / "lift" / "seed0" / "metrics.json", {"settings": {"nll_steps": 4}, "rows": []})
     write(published / "main" / "lift" / "seed0" / "metrics.json", {"settings": {"nll_steps": 100}, "rows": rows(d020=0.4)})
     evaluation.adopt_published(published, out)
@@ -565,6 +574,7 @@ def test_adopting_a_published_study_adds_the_rows_and_rates_of_runs_the_cache_la
     assert read("seed1/metrics.json")["rows"] == rows(d040=0.1, d020=0.2)  # its own d040 row wins
     assert read("seed1/success.json")["rates"] == {"/a/6": 0.5, "/b/6": 0.75}
     assert read("seed1/success.json")["scores"] == {"/b/6": 0.8}
+    assert read("seed1/datasets.json")["fingerprints"] == {"d040": "aa", "d020": "bb"}
     assert read("seed2/metrics.json")["rows"] == rows(d020=0.3)  # a seed it had not got: copied whole
     assert read("seed0/metrics.json")["rows"] == []  # other settings: not mixed in
 
@@ -602,3 +612,29 @@ def test_runs_of_one_seed_trained_on_other_recordings_of_the_demos_are_refused(t
         evaluation.evaluate_runs(preset, two, tmp_path)
     store_counts([3, 4])
     assert sorted(row["name"] for row in evaluation.evaluate_runs(preset, two, tmp_path)) == sorted(s.name for s in two)
+
+
+def test_runs_of_one_seed_with_other_dataset_fingerprints_are_refused_and_each_runs_own_is_kept(
+    tmp_path, monkeypatch
+):
+    preset, two, _, _ = _finished_runs_of_2_and_3_demos(tmp_path, monkeypatch, kills=[])
+    for spec in two:
+        write_json_atomic(spec.run_dir(tmp_path) / DATASET_FILE, {"fingerprint": "aaaa"})
+    datasets_file = evaluation.metrics_dir(tmp_path, two[0].group, two[0].task, 0) / "datasets.json"
+    evaluation.evaluate_runs(preset, two, tmp_path, fingerprints={"pusht": "aaaa"})
+    assert json.loads(datasets_file.read_text()) == {"fingerprints": {s.name: "aaaa" for s in two}}
+    published = two[0]  # its checkpoints gone: reported from stored files, as if trained in another checkout
+    shutil.rmtree(published.train_dir(tmp_path) / "checkpoints")
+    (published.run_dir(tmp_path) / DATASET_FILE).unlink()
+    other = {s.name: "bbbb" if s == published else "aaaa" for s in two}
+    datasets_file.write_text(json.dumps({"fingerprints": other}))
+    with pytest.raises(StudyError, match=f"other recordings of the demos .*{published.name}: bbbb"):
+        evaluation.evaluate_runs(preset, two, tmp_path, fingerprints={"pusht": "aaaa"})
+    datasets_file.write_text(json.dumps({"fingerprints": {s.name: "aaaa" for s in two}}))
+    assert len(evaluation.evaluate_runs(preset, two, tmp_path, fingerprints={"pusht": "aaaa"})) == 3
+    with pytest.raises(StudyError, match="the demos in .*: cccc"):  # held-out demos of another recording
+        evaluation.evaluate_runs(preset, two, tmp_path, fingerprints={"pusht": "cccc"})
+    for spec in two:  # runs here whose fingerprint was not kept: unknown, so a stored one of their name goes
+        (spec.run_dir(tmp_path) / DATASET_FILE).unlink(missing_ok=True)
+    evaluation.evaluate_runs(preset, two[1:], tmp_path, fingerprints={"pusht": "cccc"})
+    assert json.loads(datasets_file.read_text()) == {"fingerprints": {published.name: "aaaa"}}

@@ -1,5 +1,7 @@
-"""The datasets of a study: where each task's LeRobotDataset lives, how many demos it has, converting PushT's."""
+"""The datasets of a study: where each task's LeRobotDataset lives, how many demos it has, converting PushT's,
+and a fingerprint of its values (which recording of the demos a run trained on)."""
 
+import hashlib
 import json
 import logging
 import time
@@ -22,6 +24,29 @@ def _dataset_location(task: TaskPreset, output_dir: Path) -> Path:
     from lerobot.utils.constants import HF_LEROBOT_HOME
 
     return dataset_root(task, output_dir) or HF_LEROBOT_HOME / task.repo_id
+
+
+def dataset_fingerprint(task: TaskPreset, output_dir: Path) -> str | None:
+    """A hash of every value of the task's dataset under `output_dir` (None: not there). Values, not file
+    bytes (those carry the writer's version), so two recordings of the demos hash apart if they differ
+    anywhere, down to a float's last bit, as recordings made with other BLAS kernels do."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    files = sorted((_dataset_location(task, output_dir) / "data").rglob("*.parquet"))
+    if not files:
+        return None
+    digest = hashlib.sha256()
+    for file in files:
+        table = pq.read_table(file)
+        for name in sorted(table.column_names):
+            values = table.column(name).combine_chunks()
+            while isinstance(values, pa.ListArray | pa.LargeListArray | pa.FixedSizeListArray):
+                values = values.flatten()  # a state or an action: its scalars
+            array = values.to_numpy(zero_copy_only=False)
+            digest.update(f"{name}:{array.dtype}:{array.shape}".encode())
+            digest.update(array.tobytes())
+    return digest.hexdigest()[:16]
 
 
 def _missing_pusht_zarr(task: TaskPreset, root: Path) -> StudyError:

@@ -2,8 +2,9 @@
 demos, plus the success rate and score (`avg_max_reward`) of each run's last checkpoints (the sweep's
 `rollout_outcome`, LeRobot's own rollout loop).
 
-Each (group, task, seed) keeps its rows in `<output_dir>/metrics/<group>/<task>/seed<k>/metrics.json` and
-its success rates and scores in `success.json` beside it; rerunning reuses both. A run with no checkpoint on
+Each (group, task, seed) keeps its rows in `<output_dir>/metrics/<group>/<task>/seed<k>/metrics.json`, its
+success rates and scores in `success.json` beside it, and the fingerprint of the demos each run trained on
+(where kept) in `datasets.json`; rerunning reuses them. A run with no checkpoint on
 disk (its checkpoints deleted, or published from another checkout into the committed `results/`) is reported
 from those files alone, beside the runs of its seed that are swept here.
 """
@@ -22,7 +23,7 @@ from lerobot_pacdp.metrics.checkpoints import load_policy
 from lerobot_pacdp.metrics.sweep import RolloutOutcome, SweepConfig, rollout_outcome, run_sweep
 from lerobot_pacdp.study.plan import RunSpec
 from lerobot_pacdp.study.presets import Preset, StudyError
-from lerobot_pacdp.study.state import run_state, write_json_atomic
+from lerobot_pacdp.study.state import run_state, trained_on, write_json_atomic
 from lerobot_pacdp.train_runs import step_dirs
 
 logger = logging.getLogger("pacdp-study")
@@ -48,9 +49,10 @@ def _stored_rows(directory: Path, names: set[str]) -> list[dict]:
 
 
 def _merge_stored(target: Path, other: dict | None) -> None:
-    """Add to `target` (a metrics.json or success.json) the rows or success rates of the runs it lacks from
-    `other`, where both were computed with the same settings; a missing `target` gets `other` whole. Keeps the
-    cached results of runs a call did not sweep (a subset of demos or methods, seeds published elsewhere)."""
+    """Add to `target` (a metrics.json, success.json or datasets.json) the rows, success rates or fingerprints
+    of the runs it lacks from `other`, where both were computed with the same settings; a missing `target`
+    gets `other` whole. Keeps the cached results of runs a call did not sweep (a subset of demos or methods,
+    seeds published elsewhere)."""
     if other is None:
         return
     ours = _read_json(target)
@@ -62,6 +64,8 @@ def _merge_stored(target: Path, other: dict | None) -> None:
     elif ours.get("settings") == other.get("settings") and "rates" in ours:
         merged = {key: other.get(key, {}) | ours.get(key, {}) for key in ("rates", "scores")}
         write_json_atomic(target, ours | merged)
+    elif "fingerprints" in ours:
+        write_json_atomic(target, {"fingerprints": other["fingerprints"] | ours["fingerprints"]})
 
 
 def adopt_published(published: Path, output_dir: Path) -> None:
@@ -100,7 +104,9 @@ def _sweep_rows(preset: Preset, ready: list[RunSpec], directory: Path, output_di
 def _check_same_demos(swept: list[dict], stored: list[dict], where: str) -> None:
     """The runs of one seed swept here and those reported from stored rows (trained in another checkout) must
     have trained on the same demos: their held-out window counts, which follow from the demos' lengths, agree
-    (another recording of scripted demos, e.g. before OpenBLAS's kernels were pinned, has other lengths)."""
+    (another recording of scripted demos, e.g. before OpenBLAS's kernels were pinned, has other lengths). The
+    check for runs with no fingerprint kept (`_check_same_fingerprints`), which a recording that differs only
+    in its values passes."""
     counts = {tuple(row["npe_episode_counts"]) for row in swept + stored if row.get("npe_episode_counts")}
     if len(counts) > 1:
         raise StudyError(f"{where}: the runs here and the stored (published) ones held out windows of other lengths, "
@@ -108,9 +114,32 @@ def _check_same_demos(swept: list[dict], stored: list[dict], where: str) -> None
                          "record the demos with the pacdp-scripted-demos those runs used.")  # fmt: skip
 
 
-def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfinished: bool = False) -> list[dict]:
+def _check_same_fingerprints(runs: list[RunSpec], on_disk: list[RunSpec], directory: Path, output_dir: Path,
+                             current: str | None, where: str) -> None:
+    """Keep in `datasets.json` the fingerprint of the demos each run here trained on, and refuse runs of one
+    seed (here, or stored from another checkout) that trained on other recordings, or on another one than the
+    demos under `output_dir`, whose held-out episodes the metrics use. Runs with no fingerprint kept pass."""
+    file = directory / "datasets.json"
+    stored = (_read_json(file) or {}).get("fingerprints", {})
+    here = {s.name: trained_on(s, output_dir) for s in on_disk}  # their own, not a stored one of their name
+    kept = {name: fingerprint for name, fingerprint in stored.items() if name not in here}
+    kept |= {name: fingerprint for name, fingerprint in here.items() if fingerprint is not None}
+    if kept != stored:
+        write_json_atomic(file, {"fingerprints": kept})
+    known = {s.name: kept[s.name] for s in runs if s.name in kept}
+    if current is not None:
+        known[f"the demos in {output_dir}"] = current
+    if len(set(known.values())) > 1:
+        listed = ", ".join(f"{name}: {fingerprint}" for name, fingerprint in sorted(known.items()))
+        raise StudyError(f"{where}: runs trained on other recordings of the demos ({listed}); train them on "
+                         "one recording, in one --output_dir.")  # fmt: skip
+
+
+def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfinished: bool = False,
+                  fingerprints: dict[str, str | None] | None = None) -> list[dict]:  # fmt: skip
     """One row per checkpoint of every finished run (the sweep's columns plus the run's spec); with
-    `unfinished`, also of runs stopped before their last step, up to their last checkpoint."""
+    `unfinished`, also of runs stopped before their last step, up to their last checkpoint. `fingerprints`
+    (by task) are those of the demos under `output_dir` (`data.dataset_fingerprint`)."""
     wanted = ("done", "resume") if unfinished else ("done",)
     groups: dict[tuple, list[RunSpec]] = defaultdict(list)
     for spec in specs:
@@ -120,6 +149,8 @@ def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfini
         directory = metrics_dir(output_dir, group, task, seed)
         by_name = {s.name: s for s in runs}
         on_disk = [s for s in runs if step_dirs(s.train_dir(output_dir))]
+        current = (fingerprints or {}).get(task)
+        _check_same_fingerprints(runs, on_disk, directory, output_dir, current, f"{task} seed {seed}")
         ready = [s for s in on_disk if run_state(s, output_dir).status in wanted]
         group_rows = _sweep_rows(preset, ready, directory, output_dir) if ready else []
         # runs with no checkpoint here (published from another checkout, or deleted) keep their stored rows

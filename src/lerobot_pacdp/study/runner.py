@@ -19,13 +19,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_pacdp.cli_errors import run_draccus_cli
-from lerobot_pacdp.study.data import count_episodes, dataset_root, prepare_dataset
+from lerobot_pacdp.study.data import count_episodes, dataset_fingerprint, dataset_root, prepare_dataset
 from lerobot_pacdp.study.evaluation import adopt_published, evaluate_runs
 from lerobot_pacdp.study.executors import LocalExecutor, Outcome, default_trainer
 from lerobot_pacdp.study.plan import RunSpec, keep_methods, plan_study, train_config
 from lerobot_pacdp.study.presets import Preset, StudyError, get_preset, long_pair_preset, with_overrides
 from lerobot_pacdp.study.slurm import SlurmExecutor, SlurmOptions
-from lerobot_pacdp.study.state import REQUEST_FILE, check_requests, format_plan, write_json_atomic
+from lerobot_pacdp.study.state import (
+    REQUEST_FILE,
+    check_datasets,
+    check_requests,
+    format_plan,
+    write_json_atomic,
+)
 from lerobot_pacdp.study.tables import report
 
 logger = logging.getLogger("pacdp-study")
@@ -135,6 +141,9 @@ def run_study(cfg: StudyConfig) -> int:
     if executor is not None:
         for task in preset.tasks:
             prepare_dataset(task, output_dir, pusht_zarr)
+    fingerprints = {task.name: dataset_fingerprint(task, output_dir) for task in preset.tasks}
+    check_datasets(specs, output_dir, fingerprints, record=executor is not None)
+    if executor is not None:
         _write_requests(specs, preset, output_dir)
         outcome = executor.run(specs)
         logger.info("training: %d done, %d paused (rerun to continue), %d failed, %d submitted",
@@ -146,7 +155,7 @@ def run_study(cfg: StudyConfig) -> int:
     elif cfg.metrics:
         if cfg.published_metrics is not None:
             adopt_published(cfg.published_metrics, output_dir)
-        rows = evaluate_runs(preset, specs, output_dir, cfg.report_unfinished)
+        rows = evaluate_runs(preset, specs, output_dir, cfg.report_unfinished, fingerprints)
         report(preset, specs, rows, output_dir, long_pair=cfg.long_pair, perf=cfg.perf)
     return 1 if outcome.failed else 0
 

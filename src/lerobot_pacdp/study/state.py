@@ -1,6 +1,7 @@
 """Where each run of a study stands, read from its directory alone (so any process, on any node, can tell).
 
 A run directory holds `train_request.json` (its lerobot-train config), `train.log` (every call's output),
+`dataset.json` (the fingerprint of the demos it started on; none in runs started before they were kept),
 `done.json` once its final checkpoint is written, `slurm_job.json` once it was submitted to SLURM, and
 lerobot-train's output dir `train/`. A run is done when its final checkpoint is complete, resumable from
 `checkpoints/last` when that is complete, and new otherwise (`lerobot_pacdp.train_runs` reads the checkpoints).
@@ -17,6 +18,7 @@ from lerobot_pacdp.study.presets import StudyError
 from lerobot_pacdp.train_runs import checkpoint_step, final_checkpoint, last_checkpoint
 
 REQUEST_FILE, DONE_FILE, LOG_FILE, JOB_FILE = "train_request.json", "done.json", "train.log", "slurm_job.json"
+DATASET_FILE = "dataset.json"
 
 
 class RunState(NamedTuple):
@@ -57,6 +59,32 @@ def check_requests(specs: list[RunSpec], output_dir: Path) -> None:
                     f"{spec.run_dir(output_dir)} was started with other training episodes or steps than this "
                     "plan; use another --output_dir (or restore the settings it was started with)."
                 )
+
+
+def trained_on(spec: RunSpec, output_dir: Path) -> str | None:
+    """The fingerprint of the demos the run started on (`data.dataset_fingerprint`); None: not kept."""
+    path = spec.run_dir(output_dir) / DATASET_FILE
+    return json.loads(path.read_text())["fingerprint"] if path.is_file() else None
+
+
+def check_datasets(specs: list[RunSpec], output_dir: Path, fingerprints: dict[str, str | None],
+                   record: bool) -> None:  # fmt: skip
+    """Refuse runs that started on another recording of their task's demos than the one under `output_dir` now
+    (`fingerprints`, by task; it was deleted and recorded again): training would go on, and their held-out
+    metrics be computed, on other demos. With `record`, new runs keep the fingerprint they start on."""
+    started = {spec: trained_on(spec, output_dir) for spec in specs}
+    for spec, fingerprint in started.items():
+        current = fingerprints.get(spec.task)
+        if current is not None and fingerprint is not None and fingerprint != current:
+            raise StudyError(
+                f"{spec.run_dir(output_dir)} started on another recording of the {spec.task} demos than "
+                f"the one in {output_dir} now (fingerprint {fingerprint}, now {current}); use another "
+                "--output_dir, or restore the recording it started on."
+            )
+    for spec, fingerprint in started.items():  # once all are checked: nothing kept for a refused call
+        current = fingerprints.get(spec.task)
+        if record and current is not None and fingerprint is None and run_state(spec, output_dir).status == "new":
+            write_json_atomic(spec.run_dir(output_dir) / DATASET_FILE, {"fingerprint": current})
 
 
 def submitted_job(spec: RunSpec, output_dir: Path) -> dict | None:
