@@ -105,8 +105,8 @@ def _check_same_demos(swept: list[dict], stored: list[dict], where: str) -> None
     """The runs of one seed swept here and those reported from stored rows (trained in another checkout) must
     have trained on the same demos: their held-out window counts, which follow from the demos' lengths, agree
     (another recording of scripted demos, e.g. before OpenBLAS's kernels were pinned, has other lengths). The
-    check for runs with no fingerprint kept (`_check_same_fingerprints`), which a recording that differs only
-    in its values passes."""
+    check for runs with no fingerprint kept (`_keep_and_check_fingerprints`); a recording that differs only in
+    its values passes it."""
     counts = {tuple(row["npe_episode_counts"]) for row in swept + stored if row.get("npe_episode_counts")}
     if len(counts) > 1:
         raise StudyError(f"{where}: the runs here and the stored (published) ones held out windows of other lengths, "
@@ -114,8 +114,8 @@ def _check_same_demos(swept: list[dict], stored: list[dict], where: str) -> None
                          "record the demos with the pacdp-scripted-demos those runs used.")  # fmt: skip
 
 
-def _check_same_fingerprints(runs: list[RunSpec], on_disk: list[RunSpec], directory: Path, output_dir: Path,
-                             current: str | None, where: str) -> None:
+def _keep_and_check_fingerprints(runs: list[RunSpec], on_disk: list[RunSpec], directory: Path,
+                                 output_dir: Path, current: str | None, where: str) -> None:
     """Keep in `datasets.json` the fingerprint of the demos each run here trained on, and refuse runs of one
     seed (here, or stored from another checkout) that trained on other recordings, or on another one than the
     demos under `output_dir`, whose held-out episodes the metrics use. Runs with no fingerprint kept pass."""
@@ -150,7 +150,7 @@ def evaluate_runs(preset: Preset, specs: list[RunSpec], output_dir: Path, unfini
         by_name = {s.name: s for s in runs}
         on_disk = [s for s in runs if step_dirs(s.train_dir(output_dir))]
         current = (fingerprints or {}).get(task)
-        _check_same_fingerprints(runs, on_disk, directory, output_dir, current, f"{task} seed {seed}")
+        _keep_and_check_fingerprints(runs, on_disk, directory, output_dir, current, f"{task} seed {seed}")
         ready = [s for s in on_disk if run_state(s, output_dir).status in wanted]
         group_rows = _sweep_rows(preset, ready, directory, output_dir) if ready else []
         # runs with no checkpoint here (published from another checkout, or deleted) keep their stored rows

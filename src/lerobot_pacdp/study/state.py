@@ -72,18 +72,16 @@ def check_datasets(specs: list[RunSpec], output_dir: Path, fingerprints: dict[st
     """Refuse runs that started on another recording of their task's demos than the one under `output_dir` now
     (`fingerprints`, by task; it was deleted and recorded again): training would go on, and their held-out
     metrics be computed, on other demos. With `record`, new runs keep the fingerprint they start on."""
-    started = {spec: trained_on(spec, output_dir) for spec in specs}
-    for spec, fingerprint in started.items():
-        current = fingerprints.get(spec.task)
-        if current is not None and fingerprint is not None and fingerprint != current:
+    known = [(spec, trained_on(spec, output_dir), fingerprints.get(spec.task)) for spec in specs]
+    for spec, started, current in known:
+        if current is not None and started is not None and started != current:
             raise StudyError(
                 f"{spec.run_dir(output_dir)} started on another recording of the {spec.task} demos than "
-                f"the one in {output_dir} now (fingerprint {fingerprint}, now {current}); use another "
+                f"the one in {output_dir} now (fingerprint {started}, now {current}); use another "
                 "--output_dir, or restore the recording it started on."
             )
-    for spec, fingerprint in started.items():  # once all are checked: nothing kept for a refused call
-        current = fingerprints.get(spec.task)
-        if record and current is not None and fingerprint is None and run_state(spec, output_dir).status == "new":
+    for spec, started, current in known:  # once all are checked: nothing kept for a refused call
+        if record and current is not None and started is None and run_state(spec, output_dir).status == "new":
             write_json_atomic(spec.run_dir(output_dir) / DATASET_FILE, {"fingerprint": current})
 
 
