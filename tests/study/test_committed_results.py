@@ -74,7 +74,7 @@ def test_the_committed_tables_regenerate_from_their_metrics_files(tmp_path, push
         ("study_cpu_v2_steps40000", ["--steps=40000", "--save_freq=1000", "--success_every=10000"]),
         # STEPS=60000 SUCCESS_EVERY=10000 (Can: seeds 0, 1 and 2 with 20 and with 40 demos)
         ("study_cpu_v2_steps60000", ["--steps=60000", "--save_freq=1000", "--success_every=10000"]),
-        # STEPS=80000 SUCCESS_EVERY=10000 DEMOS=20 (Can, seed 0: does PAC-DP's plateau hold)
+        # STEPS=80000 SUCCESS_EVERY=10000 DEMOS=20 (Can, seeds 0, 1 and 2: does PAC-DP's plateau hold)
         ("study_cpu_v2_steps80000", ["--steps=80000", "--save_freq=1000", "--success_every=10000"]),
         # STEPS=120000 SUCCESS_EVERY=10000 DEMOS=20 METHODS=PAC-DP (Can, seed 0: PAC-DP's plateau)
         ("study_cpu_v2_steps120000",
